@@ -63,17 +63,18 @@ def save_rig(rig: Rig, path, *, metadata: dict | None = None) -> Path:
     return path
 
 
-def _vec(table: dict, key: str, n: int | tuple, where: str) -> np.ndarray:
+def _vec(table: dict, key: str, shape: tuple, where: str, sizes: tuple = ()) -> np.ndarray:
+    """Numeric field ``key`` of exact ``shape``, or 1-D with a length in ``sizes``."""
     if key not in table:
         raise CalibrationFileError(f"{where}: missing field '{key}'")
     try:
         arr = np.asarray(table[key], dtype=np.float64)
     except (TypeError, ValueError) as e:
         raise CalibrationFileError(f"{where}: field '{key}' is not numeric: {table[key]!r}") from e
-    ok = arr.shape == n if isinstance(n, tuple) else (arr.ndim == 1 and arr.size in
-                                                      ((n,) if isinstance(n, int) else n))
+    ok = arr.shape == shape or (arr.ndim == 1 and arr.size in sizes)
     if not ok:
-        raise CalibrationFileError(f"{where}: field '{key}' has shape {arr.shape}, expected {n}")
+        want = f"length {' or '.join(map(str, sizes))}" if sizes else f"shape {shape}"
+        raise CalibrationFileError(f"{where}: field '{key}' has shape {arr.shape}, expected {want}")
     if not np.all(np.isfinite(arr)):
         raise CalibrationFileError(f"{where}: field '{key}' contains non-finite values")
     return arr
@@ -116,11 +117,11 @@ def load_rig(path) -> Rig:
         where = f"{path} [{key}]"
         if table.get("fisheye", False):
             raise CalibrationFileError(f"{where}: fisheye cameras are not supported")
-        size = _vec(table, "size", 2, where)
+        size = _vec(table, "size", (2,), where)
         K = _vec(table, "matrix", (3, 3), where)
-        dist = _vec(table, "distortions", (4, 5), where)
-        rvec = _vec(table, "rotation", 3, where)
-        t = _vec(table, "translation", 3, where)
+        dist = _vec(table, "distortions", (5,), where, sizes=(4, 5))
+        rvec = _vec(table, "rotation", (3,), where)
+        t = _vec(table, "translation", (3,), where)
         try:
             cams.append(Camera(name=name, size=(int(round(size[0])), int(round(size[1]))), K=K,
                                dist=dist, R=rotation_from_rodrigues(rvec), t=t))
