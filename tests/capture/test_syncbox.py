@@ -1,0 +1,141 @@
+"""Host sync box driver against the simulated box, through the real pty device path."""
+import time
+
+import numpy as np
+import pytest
+
+from capture.errors import SyncBoxDisconnected, SyncBoxNak, SyncProtocolError
+from capture.sync_protocol import NakCode
+from capture.syncbox import SyncBox, SyncConfig
+from hw_sim.syncbox import SimSyncBox
+
+# a pulse's host time comes from the clock fit; each fit sample is within rtt/2 of truth,
+# the line through them (evaluated slightly outside the samples) within twice that.
+FIT_BOUND_FACTOR = 2.0
+RATE_HZ = 100.0
+
+
+def _collect(box, seconds):
+    out, t_end = [], time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        p = box.get_pulse(0.05)
+        if p is not None:
+            out.append(p)
+    return out
+
+
+@pytest.fixture
+def sim():
+    s = SimSyncBox(drift_ppm=50.0, jitter_us=2.0, rng=7)
+    truth = {}
+    s.add_trigger_listener(lambda e: truth.__setitem__((e.index, e.device_ticks), e.host_ns))
+    s.truth = truth
+    yield s
+    s.close()
+
+
+def test_port_is_a_real_pty_device(sim):
+    assert sim.port.startswith("/dev/pts/")
+
+
+def test_version_clock_and_pulses_match_truth(sim):
+    with SyncBox(sim.port) as box:
+        assert box.info.tick_hz == 1_000_000 and box.info.protocol == (1, 0)
+        box.configure(SyncConfig(rate_hz=RATE_HZ, strobe_width_us=300, strobe_delay_us=20))
+        box.start()
+        pulses = _collect(box, 1.0)
+        box.stop()
+        fit = box.clock.fit
+        assert fit.ok
+        idx = [p.index for p in pulses]
+        assert idx == list(range(len(idx))) and len(idx) >= 0.8 * RATE_HZ
+        err = np.array([box.host_time(p) - sim.truth[(p.index, p.device_ticks)]
+                        for p in pulses])
+        assert np.max(np.abs(err)) <= FIT_BOUND_FACTOR * fit.bound_ns, (err, fit)
+        # device period in ticks is exact: 1e6 / rate
+        ticks = np.array([p.device_ticks for p in pulses])
+        assert np.all(np.abs(np.diff(ticks) - 1e6 / RATE_HZ) <= 1)
+        assert box.stats().bad_frames == 0
+
+
+def test_naks_are_raised_with_code(sim):
+    with SyncBox(sim.port) as box:
+        with pytest.raises(SyncBoxNak) as e:
+            box.start()
+        assert e.value.code == NakCode.NOT_CONFIGURED and sim.port in str(e.value)
+        box.configure(SyncConfig(rate_hz=50))
+        box.start()
+        with pytest.raises(SyncBoxNak) as e:
+            box.configure(SyncConfig(rate_hz=60))
+        assert e.value.code == NakCode.BUSY
+
+
+def test_survives_garbage_and_partial_frames(sim):
+    with SyncBox(sim.port) as box:
+        box.configure(SyncConfig(rate_hz=RATE_HZ))
+        box.start()
+        sim.split_writes = True
+        n_bursts = 10
+        for _ in range(n_bursts // 2):
+            sim.inject_garbage(40)
+            sim.inject_garbage(300, with_zeros=False)
+            time.sleep(0.05)
+        pulses = _collect(box, 0.6)
+        assert box.error is None
+        assert box.stats().bad_frames > 0
+        idx = [p.index for p in pulses]
+        assert len(idx) > 0.3 * RATE_HZ
+        # a burst corrupts at most the frame it lands in and the one it runs into
+        assert np.all(np.diff(idx) > 0)
+        assert box.stats().pulses_missed <= 2 * n_bursts
+        assert box.time_query().rtt_ns > 0
+
+
+def test_survives_box_reset(sim):
+    with SyncBox(sim.port, query_interval_s=0.05) as box:
+        box.configure(SyncConfig(rate_hz=RATE_HZ))
+        box.start()
+        _collect(box, 0.3)
+        sim.reset()
+        deadline = time.monotonic() + 3.0
+        while not (sim.running and box.epoch == 1) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert box.stats().resets == 1 and sim.running  # reconfigured and restarted
+        while box.get_pulse(0) is not None:
+            pass
+        after = [p for p in _collect(box, 0.5) if p.epoch == 1]
+        assert len(after) > 10
+        fit = box.clock.fit
+        assert fit.ok
+        err = [box.host_time(p) - sim.truth[(p.index, p.device_ticks)] for p in after]
+        assert np.max(np.abs(err)) <= FIT_BOUND_FACTOR * fit.bound_ns
+
+
+def test_disappearing_box_raises_disconnected(sim):
+    box = SyncBox(sim.port)
+    box.configure(SyncConfig(rate_hz=RATE_HZ))
+    box.start()
+    sim.disappear()
+    with pytest.raises(SyncBoxDisconnected, match="/dev/pts/"):
+        while True:
+            box.get_pulse(0.1)
+    assert isinstance(box.error, SyncBoxDisconnected)
+    box.close()
+
+
+def test_sustained_garbage_is_a_protocol_error(sim):
+    box = SyncBox(sim.port, garbage_timeout_s=0.3, query_interval_s=10)
+    sim.split_writes = False
+    t_end = time.monotonic() + 2.0
+    with pytest.raises(SyncProtocolError, match="no valid frame"):
+        while time.monotonic() < t_end:
+            sim.inject_garbage(64, with_zeros=False)
+            sim.inject_garbage(8)
+            time.sleep(0.01)
+            box.get_pulse(0)
+    box.close()
+
+
+def test_missing_port_is_clear_error(tmp_path):
+    with pytest.raises(SyncBoxDisconnected, match="nothing-here"):
+        SyncBox(str(tmp_path / "nothing-here"))
