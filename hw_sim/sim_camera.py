@@ -1,0 +1,337 @@
+"""``SimCamera``: a simulated camera following the ``capture.camera.Camera`` protocol.
+
+Like a sensor with its FSIN/trigger pin wired to the sync box, it exposes a frame at every
+pulse of a ``SimSyncBox`` (it listens to the box's trigger line, not to the serial
+messages) or, without a box, free-runs at its own rate. Frames carry a driver-like sequence
+number and a kernel-like timestamp (start of exposure, or end of frame) on the host
+monotonic clock with small jitter, and are delivered after a readout latency. Like V4L2 it
+has a fixed number of buffers: when the reader does not keep up, frames are dropped and the
+sequence number still advances. Faults: ``disappear()``, random drops, late delivery.
+
+Images come from ``hw_sim.render.render_frame`` when that module exists; until then from a
+clearly temporary placeholder renderer (``_placeholder_render``).
+Conventions: docs/conventions.md [pixels], [time], [frames].
+"""
+from __future__ import annotations
+
+import os
+import queue
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from calibration.camera import Camera as CameraModel, look_at
+from capture.camera import CameraSettings, PixelFormat, TriggerMode
+from capture.errors import CameraDisconnected
+from capture.frame import Frame, TimestampSource
+
+__all__ = ["SimCamera", "Scene", "orbiting_markers", "ring_of_cameras"]
+
+Scene = Callable[[float], tuple[np.ndarray, np.ndarray]]  # t_s -> (points (N,3) m, diam (N,) m)
+
+_EXPOSURE_STEP_US = 10.0   # exposure is applied in whole sensor lines (~10 us)
+_GAIN_STEP = 1.0 / 16.0
+_GAIN_RANGE = (1.0, 16.0)
+_READOUT_NS_PER_ROW = 15_000  # rolling readout; end-of-frame = start + exposure + rows * this
+
+
+def orbiting_markers(n: int = 5, *, radius_m: float = 0.5, height_m: float = 1.0,
+                     period_s: float = 4.0, diameter_m: float = 0.014) -> Scene:
+    """A few markers circling the world z axis (test and demo scene)."""
+    phase = 2 * np.pi * np.arange(n) / max(n, 1)
+    z = height_m + 0.2 * np.linspace(-1, 1, n) if n > 1 else np.full(n, height_m)
+
+    def scene(t_s: float):
+        a = 2 * np.pi * t_s / period_s + phase
+        pts = np.stack([radius_m * np.cos(a), radius_m * np.sin(a), z], axis=1)
+        return pts, np.full(n, diameter_m)
+
+    return scene
+
+
+def ring_of_cameras(n: int, *, size=(320, 256), radius_m: float = 3.0, height_m: float = 2.2,
+                    hfov_deg: float = 60.0, target=(0.0, 0.0, 1.0)) -> list[CameraModel]:
+    """``n`` ideal cameras on a circle looking at ``target`` (ids cam_1..cam_n)."""
+    w, h = size
+    fx = (w / 2) / np.tan(np.radians(hfov_deg) / 2)
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        R, t = look_at((radius_m * np.cos(a), radius_m * np.sin(a), height_m), target)
+        cams.append(CameraModel.from_params(name=f"cam_{i + 1}", size=(w, h), fx=fx, R=R, t=t))
+    return cams
+
+
+def _placeholder_render(model: CameraModel, points: np.ndarray, diameters: np.ndarray,
+                        rng: np.random.Generator, bit_depth: int) -> np.ndarray:
+    """TEMPORARY stand-in for hw_sim.render.render_frame: Gaussian blobs, read noise."""
+    w, h = model.size
+    top = (1 << bit_depth) - 1
+    img = rng.normal(0.02 * top, 0.004 * top, size=(h, w))
+    if len(points):
+        depth = model.depth(points)
+        uv = model.project(points)
+        for (u, v), z, d in zip(uv, depth, diameters):
+            if not z > 0 or not np.isfinite(u):
+                continue
+            sigma = max(0.6, 0.5 * d * model.K[0, 0] / z / 2.0)
+            r = int(np.ceil(4 * sigma))
+            c0, r0 = int(round(u)), int(round(v))
+            if c0 + r < 0 or c0 - r >= w or r0 + r < 0 or r0 - r >= h:
+                continue
+            ys = np.arange(max(0, r0 - r), min(h, r0 + r + 1))
+            xs = np.arange(max(0, c0 - r), min(w, c0 + r + 1))
+            g = np.exp(-((ys[:, None] - v) ** 2 + (xs[None, :] - u) ** 2) / (2 * sigma ** 2))
+            img[ys[0]:ys[-1] + 1, xs[0]:xs[-1] + 1] += 0.9 * top * g
+    dtype = np.uint8 if bit_depth <= 8 else np.uint16
+    return np.clip(np.rint(img), 0, top).astype(dtype)
+
+
+def _renderer():
+    try:
+        from hw_sim.render import render_frame  # written by the hw_sim rendering work
+    except ImportError:
+        return None
+    return render_frame
+
+
+class SimCamera:
+    """Simulated camera (see module docstring).
+
+    Args:
+        model: calibrated camera model (pose, intrinsics, size); ``model.name`` is the id.
+        scene: ``t_s -> (points (N,3), diameters (N,))``; time since ``time_origin_ns``.
+        sync: simulated sync box whose trigger line starts each exposure, or None.
+        bit_depth: 8 (GREY) or 10 (Y10).
+        n_buffers: driver buffers; when all hold undelivered frames, new frames are dropped.
+        latency_ms: exposure start -> frame available (readout + USB + driver).
+        timestamp_jitter_us: std of the kernel timestamp noise.
+        rng: Generator or seed.
+    """
+
+    def __init__(self, model: CameraModel, *, scene: Scene | None = None, sync=None,
+                 bit_depth: int = 8, exposure_us: float = 500.0, gain: float = 1.0,
+                 rate_hz: float = 100.0,
+                 timestamp_source: TimestampSource = TimestampSource.KERNEL_START_OF_EXPOSURE,
+                 n_buffers: int = 4, latency_ms: float = 3.0, timestamp_jitter_us: float = 20.0,
+                 time_origin_ns: int = 0, rng=None):
+        if bit_depth not in (8, 10):
+            raise ValueError(f"bit_depth={bit_depth}, expected 8 or 10")
+        if timestamp_source not in (TimestampSource.KERNEL_START_OF_EXPOSURE,
+                                    TimestampSource.KERNEL_END_OF_FRAME):
+            raise ValueError(f"timestamp_source={timestamp_source}, expected a kernel source")
+        if n_buffers < 1:
+            raise ValueError(f"n_buffers={n_buffers}, expected >= 1")
+        self.model = model
+        self.scene = scene if scene is not None else orbiting_markers()
+        self.sync = sync
+        self.bit_depth = bit_depth
+        self.timestamp_source = timestamp_source
+        self.latency_ns = int(latency_ms * 1e6)
+        self.timestamp_jitter_ns = timestamp_jitter_us * 1e3
+        self.time_origin_ns = int(time_origin_ns)
+        self.rng = np.random.default_rng(rng)
+        self.device = f"sim:{model.name}"
+        w, h = model.size
+        self._settings = CameraSettings(
+            width=w, height=h, pixel_format=PixelFormat.GREY if bit_depth == 8 else PixelFormat.Y10,
+            rate_hz=float(rate_hz), exposure_us=self._quant_exposure(exposure_us),
+            gain=self._quant_gain(gain),
+            trigger=TriggerMode.EXTERNAL if sync is not None else TriggerMode.FREE_RUN)
+        self._n_buffers = n_buffers
+        self._out: queue.Queue[Frame] = queue.Queue()
+        self._triggers: queue.Queue = queue.Queue(maxsize=64)
+        self._rfd, self._wfd = os.pipe()
+        os.set_blocking(self._rfd, False)
+        self._seq = -1
+        self._running = False
+        self._gone = False
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._free_run: threading.Thread | None = None
+        self._pending = 0
+        self._plock = threading.Lock()
+        # faults and truth
+        self.drop_probability = 0.0
+        self.late_probability = 0.0
+        self.late_ms = 30.0
+        self.disappear_after_frames: int | None = None
+        self.frames_exposed = 0
+        self.frames_dropped = 0
+        self.truth: dict[int, tuple[int, float]] = {}  # sequence -> (pulse index, host ns)
+
+    # -- Camera protocol ------------------------------------------------------------------
+    @property
+    def camera_id(self) -> str:
+        return self.model.name
+
+    def configure(self, settings: CameraSettings) -> CameraSettings:
+        """Apply what the simulated sensor supports; returns the settings read back."""
+        self._check_alive()
+        cur = self._settings
+        w, h = self.model.size  # fixed-size sensor: a size request is not honoured
+        fmt = cur.pixel_format
+        if settings.pixel_format in (PixelFormat.GREY, PixelFormat.Y10):
+            fmt = settings.pixel_format
+            self.bit_depth = 8 if fmt == PixelFormat.GREY else 10
+        self._settings = CameraSettings(
+            width=w, height=h, pixel_format=fmt,
+            rate_hz=cur.rate_hz if settings.rate_hz is None else float(settings.rate_hz),
+            exposure_us=cur.exposure_us if settings.exposure_us is None
+            else self._quant_exposure(settings.exposure_us),
+            gain=cur.gain if settings.gain is None else self._quant_gain(settings.gain),
+            trigger=TriggerMode.EXTERNAL if self.sync is not None else TriggerMode.FREE_RUN)
+        return self._settings
+
+    @property
+    def settings(self) -> CameraSettings:
+        return self._settings
+
+    def start(self) -> None:
+        self._check_alive()
+        if self._running:
+            return
+        self._running = True
+        self._stop.clear()
+        self._worker = threading.Thread(target=self._work, name=f"simcam {self.camera_id}",
+                                        daemon=True)
+        self._worker.start()
+        if self.sync is not None:
+            self.sync.add_trigger_listener(self._on_trigger)
+        else:
+            self._free_run = threading.Thread(target=self._free_run_loop, daemon=True,
+                                              name=f"simcam-clock {self.camera_id}")
+            self._free_run.start()
+
+    def stop(self) -> None:
+        self._running = False
+        if self.sync is not None:
+            self.sync.remove_trigger_listener(self._on_trigger)
+        self._stop.set()
+        for t in (self._worker, self._free_run):
+            if t is not None and t is not threading.current_thread():
+                t.join(timeout=1.0)
+        self._worker = self._free_run = None
+
+    def read(self, timeout: float) -> Frame | None:
+        try:
+            f = self._out.get(timeout=max(0.0, timeout)) if timeout > 0 else \
+                self._out.get_nowait()
+        except queue.Empty:
+            self._check_alive()
+            return None
+        with self._plock:
+            self._pending -= 1
+        try:
+            os.read(self._rfd, 1)
+        except (BlockingIOError, OSError):
+            pass
+        return f
+
+    def fileno(self) -> int:
+        return self._rfd
+
+    def close(self) -> None:
+        self.stop()
+        for fd in (self._rfd, self._wfd):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    # -- faults -----------------------------------------------------------------------------
+    def disappear(self) -> None:
+        """Unplug: no more frames; ``read`` raises ``CameraDisconnected`` once drained."""
+        self._gone = True
+        self._running = False
+        if self.sync is not None:
+            self.sync.remove_trigger_listener(self._on_trigger)
+        self._stop.set()
+
+    # -- internals ------------------------------------------------------------------------
+    @staticmethod
+    def _quant_exposure(us: float) -> float:
+        return max(_EXPOSURE_STEP_US, round(float(us) / _EXPOSURE_STEP_US) * _EXPOSURE_STEP_US)
+
+    @staticmethod
+    def _quant_gain(g: float) -> float:
+        g = min(max(float(g), _GAIN_RANGE[0]), _GAIN_RANGE[1])
+        return round(g / _GAIN_STEP) * _GAIN_STEP
+
+    def _check_alive(self):
+        if self._gone:
+            raise CameraDisconnected(self.device, "camera disappeared (simulated unplug)")
+
+    def _on_trigger(self, ev) -> None:
+        try:
+            self._triggers.put_nowait((ev.index, ev.host_ns))
+        except queue.Full:
+            self._seq += 1  # sensor exposed, driver had nowhere to put it
+            self.frames_dropped += 1
+
+    def _free_run_loop(self) -> None:
+        period = 1e9 / self._settings.rate_hz
+        t0 = time.monotonic_ns() + 1_000_000
+        k = 0
+        while not self._stop.is_set():
+            due = t0 + k * period
+            dt = (due - time.monotonic_ns()) * 1e-9
+            if dt > 0 and self._stop.wait(dt):
+                return
+            try:
+                self._triggers.put_nowait((k, float(due)))
+            except queue.Full:
+                self._seq += 1
+                self.frames_dropped += 1
+            k += 1
+
+    def _work(self) -> None:
+        render = _renderer()
+        while not self._stop.is_set():
+            try:
+                index, pulse_ns = self._triggers.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            self._seq += 1
+            seq = self._seq
+            self.frames_exposed += 1
+            if self.disappear_after_frames is not None and \
+                    self.frames_exposed > self.disappear_after_frames:
+                self.disappear()
+                return
+            s = self._settings
+            t_s = (pulse_ns - self.time_origin_ns) * 1e-9
+            pts, diam = self.scene(t_s)
+            if render is not None:
+                img = render(self.model, pts, diam, rng=self.rng, bit_depth=self.bit_depth)
+                img = img[0] if isinstance(img, tuple) else img
+            else:
+                img = _placeholder_render(self.model, pts, diam, self.rng, self.bit_depth)
+            ts = pulse_ns + self.rng.normal(0.0, self.timestamp_jitter_ns)
+            if self.timestamp_source == TimestampSource.KERNEL_END_OF_FRAME:
+                ts += s.exposure_us * 1e3 + self.model.size[1] * _READOUT_NS_PER_ROW
+            frame = Frame(image=img, camera_id=self.camera_id, sequence=seq,
+                          timestamp_ns=int(round(ts)), timestamp_source=self.timestamp_source,
+                          exposure_us=s.exposure_us, gain=s.gain)
+            self.truth[seq] = (index, pulse_ns)
+            if self.drop_probability and self.rng.random() < self.drop_probability:
+                self.frames_dropped += 1
+                continue
+            due = pulse_ns + self.latency_ns
+            if self.late_probability and self.rng.random() < self.late_probability:
+                due += self.late_ms * 1e6
+            wait = (due - time.monotonic_ns()) * 1e-9
+            if wait > 0 and self._stop.wait(wait):
+                return
+            with self._plock:
+                if self._pending >= self._n_buffers:
+                    self.frames_dropped += 1  # all buffers full: the driver drops
+                    continue
+                self._pending += 1
+            self._out.put(frame)
+            try:
+                os.write(self._wfd, b"\x01")
+            except OSError:
+                pass
