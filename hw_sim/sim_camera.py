@@ -27,7 +27,7 @@ from capture.camera import CameraSettings, PixelFormat, TriggerMode
 from capture.errors import CameraDisconnected
 from capture.frame import Frame, TimestampSource
 
-__all__ = ["SimCamera", "Scene", "orbiting_markers", "ring_of_cameras"]
+__all__ = ["SimCamera", "Scene", "orbiting_markers", "ring_of_cameras", "sim_rig"]
 
 Scene = Callable[[float], tuple[np.ndarray, np.ndarray]]  # t_s -> (points (N,3) m, diam (N,) m)
 
@@ -335,3 +335,22 @@ class SimCamera:
                 os.write(self._wfd, b"\x01")
             except OSError:
                 pass
+
+
+def sim_rig(n_cameras: int, *, size=(320, 256), scene: Scene | None = None,
+            drift_ppm: float = 50.0, rng=None):
+    """A simulated sync box and ``n_cameras`` SimCameras wired to its trigger line.
+
+    Returns ``(box, cameras)``; the caller opens ``box.port`` with the host driver and
+    closes everything. Cameras share one scene clock (origin: now).
+    """
+    from hw_sim.syncbox import SimSyncBox
+
+    if n_cameras < 1:
+        raise ValueError(f"n_cameras={n_cameras}, expected >= 1")
+    rng = np.random.default_rng(rng)
+    box = SimSyncBox(drift_ppm=drift_ppm, rng=rng)
+    origin = time.monotonic_ns()
+    cams = [SimCamera(m, scene=scene, sync=box, time_origin_ns=origin, rng=rng)
+            for m in ring_of_cameras(n_cameras, size=size)]
+    return box, cams
