@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from .camera import Camera
-from .recording import CODEC_ZLIB_RLE, RecordedCamera, Recorder
+from .recording import CODEC_AUTO, RecordedCamera, Recorder
 from .session import CaptureSession, SessionStats
 from .syncbox import SyncBox
 
@@ -27,7 +27,7 @@ class LiveResult:
 
 def record_live(cameras: Sequence[Camera], sync: SyncBox | None, out, *, duration_s: float,
                 rate_hz: float | None = None, calibration: str | None = None,
-                codec: int = CODEC_ZLIB_RLE,
+                codec: int = CODEC_AUTO,
                 on_status: Callable[[str], None] | None = None) -> LiveResult:
     """Run cameras (+ sync box) for ``duration_s`` and record to folder ``out``."""
     if not duration_s > 0:

@@ -11,9 +11,14 @@ A ``.frames`` file is an 8-byte magic ``OMCFRM01`` followed by records::
 
     u32 magic 0x4D524652 | u32 payload_len | header (struct _HDR) | payload | u32 crc32
 
-``crc32`` (zlib) covers header and payload. The payload is the image compressed
-losslessly: codec 1 = deflate level 1 with the RLE strategy (fast on dark mocap frames,
-readable with plain ``zlib.decompress``), codec 0 = raw little-endian pixels. Records are
+``crc32`` (zlib) covers header and payload. The payload is the image, lossless, in
+one of three codecs chosen per record: 0 = raw little-endian pixels; 1 = deflate level 1
+with the RLE strategy (plain ``zlib.decompress`` reads it); 2 = sparse blocks: the pixel
+bytes cut into 64-byte blocks, a bitmap (``np.packbits``) of the non-zero blocks, then those
+blocks deflated as in codec 1 (payload ``u32 block, u32 n_blocks, u32 n_nonzero, bitmap,
+deflate``). ``CODEC_AUTO`` picks 2 for mostly-black frames, else 1, and falls back to 0 while
+the writer's queue is more than half full, so a slow disk or CPU costs compression ratio
+before it costs frames. Records are
 written by one thread per camera and flushed to the kernel after each record (so ``kill -9``
 loses only frames still queued), and fsynced every ``fsync_interval_s`` (power loss loses
 at most that). A reader stops at the first incomplete or corrupt record at the tail.
@@ -43,11 +48,14 @@ from .errors import DiskFullError, RecordingError
 from .frame import Frame, TimestampSource
 
 __all__ = ["Recorder", "RecordedCamera", "FILE_MAGIC", "CODEC_RAW", "CODEC_ZLIB_RLE",
-           "encode_record", "frames_file_name"]
+           "CODEC_SPARSE", "CODEC_AUTO", "encode_record", "decode_payload", "frames_file_name"]
 
 FILE_MAGIC = b"OMCFRM01"
 REC_MAGIC = 0x4D524652
-CODEC_RAW, CODEC_ZLIB_RLE = 0, 1
+CODEC_RAW, CODEC_ZLIB_RLE, CODEC_SPARSE = 0, 1, 2
+CODEC_AUTO = -1
+_BLOCK = 64
+_SPARSE_MAX_FILL = 0.5   # auto: sparse coding when at most this fraction of blocks is non-zero
 FORMAT_VERSION = 1
 # frame_index, pulse_index, epoch, set_host_ns, sequence, timestamp_ns, source, exposure_us,
 # gain, height, width, bits, codec
@@ -59,26 +67,72 @@ def frames_file_name(i: int) -> str:
     return f"cam{i:02d}.frames"
 
 
-def _compress(img: np.ndarray, codec: int) -> bytes:
-    raw = np.ascontiguousarray(img, dtype=img.dtype.newbyteorder("<")).tobytes()
-    if codec == CODEC_RAW:
-        return raw
+def _deflate(b) -> bytes:
     c = zlib.compressobj(1, zlib.DEFLATED, 15, 9, zlib.Z_RLE)
-    return c.compress(raw) + c.flush()
+    return c.compress(b) + c.flush()
 
 
-def encode_record(frame: Frame, *, frame_index: int, pulse_index: int = -1, epoch: int = 0,
-                  set_host_ns: float = float("nan"), codec: int = CODEC_ZLIB_RLE) -> bytes:
-    """One framed record (see module docstring)."""
+def _compress(img: np.ndarray, codec: int) -> tuple[int, bytes]:
+    """(codec used, payload); CODEC_AUTO resolves to sparse or deflate."""
+    a = np.ascontiguousarray(img, dtype=img.dtype.newbyteorder("<"))
+    if codec == CODEC_RAW:
+        return CODEC_RAW, a.tobytes()
+    if codec == CODEC_ZLIB_RLE:
+        return CODEC_ZLIB_RLE, _deflate(a)
+    flat = a.reshape(-1).view(np.uint8)
+    pad = (-flat.size) % _BLOCK
+    if pad:
+        flat = np.concatenate([flat, np.zeros(pad, np.uint8)])
+    blocks = flat.reshape(-1, _BLOCK)
+    nz = blocks.view(np.uint64).any(axis=1)
+    n_nz = int(nz.sum())
+    if codec == CODEC_AUTO and n_nz > _SPARSE_MAX_FILL * len(nz):
+        return CODEC_ZLIB_RLE, _deflate(a)
+    head = struct.pack("<III", _BLOCK, len(nz), n_nz)
+    return CODEC_SPARSE, head + np.packbits(nz).tobytes() + _deflate(blocks[nz])
+
+
+def decode_payload(payload: bytes, codec: int, shape: tuple[int, int], dtype) -> np.ndarray:
+    """Inverse of the record codecs: an (H, W) image of ``dtype`` (native byte order)."""
+    dt = np.dtype(dtype).newbyteorder("<")
+    nbytes = int(np.prod(shape)) * dt.itemsize
+    if codec == CODEC_RAW:
+        data = payload
+    elif codec == CODEC_ZLIB_RLE:
+        data = zlib.decompress(payload)
+    elif codec == CODEC_SPARSE:
+        block, n_blocks, n_nz = struct.unpack_from("<III", payload)
+        nb = (n_blocks + 7) // 8
+        nz = np.unpackbits(np.frombuffer(payload, np.uint8, nb, 12))[:n_blocks].astype(bool)
+        if int(nz.sum()) != n_nz:
+            raise ValueError(f"sparse bitmap has {int(nz.sum())} blocks, header says {n_nz}")
+        out = np.zeros((n_blocks, block), np.uint8)
+        out[nz] = np.frombuffer(zlib.decompress(payload[12 + nb:]), np.uint8).reshape(-1, block)
+        data = out.reshape(-1)[:nbytes].tobytes()
+    else:
+        raise ValueError(f"unknown codec {codec}")
+    if len(data) != nbytes:
+        raise ValueError(f"payload decodes to {len(data)} bytes, expected {nbytes}")
+    return np.frombuffer(data, dtype=dt).reshape(shape).astype(np.dtype(dtype).newbyteorder("="))
+
+
+def encode_record(frame: Frame, **kw) -> bytes:
+    """One framed record as bytes (see module docstring)."""
+    return b"".join(encode_record_parts(frame, **kw))
+
+
+def encode_record_parts(frame: Frame, *, frame_index: int, pulse_index: int = -1, epoch: int = 0,
+                  set_host_ns: float = float("nan"), codec: int = CODEC_AUTO) -> list[bytes]:
+    """A record as [prefix + header, payload, crc] (written without joining copies)."""
     img = frame.image
     h, w = img.shape
     set_ns = int(set_host_ns) if np.isfinite(set_host_ns) else -1
+    used, payload = _compress(img, codec)
     hdr = _HDR.pack(int(frame_index), int(pulse_index), int(epoch) & 0xFFFF, set_ns,
                     frame.sequence, frame.timestamp_ns, _SOURCES.index(frame.timestamp_source),
-                    frame.exposure_us, frame.gain, h, w, 8 * img.dtype.itemsize, codec)
-    payload = _compress(img, codec)
+                    frame.exposure_us, frame.gain, h, w, 8 * img.dtype.itemsize, used)
     crc = zlib.crc32(payload, zlib.crc32(hdr))
-    return struct.pack("<II", REC_MAGIC, len(payload)) + hdr + payload + struct.pack("<I", crc)
+    return [struct.pack("<II", REC_MAGIC, len(payload)) + hdr, payload, struct.pack("<I", crc)]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -128,13 +182,18 @@ class _Writer:
                     return
                 if item:
                     frame, kw = item
-                    rec = encode_record(frame, codec=self.codec, **kw)
-                    self.f.write(rec)
+                    codec = self.codec
+                    if codec == CODEC_AUTO and self.q.qsize() > self.q.maxsize // 2:
+                        codec = CODEC_RAW   # falling behind: keep the frames, lose ratio
+                    parts = encode_record_parts(frame, codec=codec, **kw)
+                    for p in parts:
+                        self.f.write(p)
                     self.f.flush()   # in the kernel: survives kill -9
-                    self.good_end += len(rec)
+                    n = sum(len(p) for p in parts)
+                    self.good_end += n
                     self.n_records += 1
                     self.bytes_raw += frame.image.nbytes
-                    self.bytes_written += len(rec)
+                    self.bytes_written += n
                 if time.monotonic() - self._last_sync >= self.fsync_interval_s:
                     self._sync()
         except OSError as e:
@@ -182,7 +241,7 @@ class Recorder:
         rate_hz: frame-set rate.
         sync_config: dict describing the sync box configuration (or None).
         calibration: path of the calibration file this recording belongs to (or None).
-        codec: ``CODEC_ZLIB_RLE`` (default) or ``CODEC_RAW``.
+        codec: ``CODEC_AUTO`` (default), ``CODEC_SPARSE``, ``CODEC_ZLIB_RLE`` or ``CODEC_RAW``.
         queue_frames: per-camera queue; a full queue blocks the producer (back-pressure).
         fsync_interval_s: at most this much is lost on power failure.
         file_factory: ``path -> binary file`` (tests inject a disk that fills up).
@@ -190,14 +249,15 @@ class Recorder:
 
     def __init__(self, folder, cameras: Sequence[RecordedCamera], *, rate_hz: float,
                  sync_config: dict | None = None, calibration: str | None = None,
-                 codec: int = CODEC_ZLIB_RLE, queue_frames: int = 32,
+                 codec: int = CODEC_AUTO, queue_frames: int = 32,
                  fsync_interval_s: float = 0.5, file_factory: Callable | None = None,
                  extra: dict | None = None):
         self.folder = Path(folder)
         if not cameras:
             raise ValueError("cameras is empty")
-        if codec not in (CODEC_RAW, CODEC_ZLIB_RLE):
-            raise ValueError(f"codec={codec}, expected CODEC_RAW or CODEC_ZLIB_RLE")
+        if codec not in (CODEC_RAW, CODEC_ZLIB_RLE, CODEC_SPARSE, CODEC_AUTO):
+            raise ValueError(f"codec={codec}, expected one of CODEC_AUTO, CODEC_SPARSE, "
+                             f"CODEC_ZLIB_RLE, CODEC_RAW")
         if (self.folder / "metadata.json").exists():
             raise ValueError(f"{self.folder} already holds a recording")
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -212,7 +272,8 @@ class Recorder:
             "cameras": [{"id": c.camera_id, "device": c.device, "settings": c.settings,
                          "file": frames_file_name(i)} for i, c in enumerate(self.cameras)],
             "sync": sync_config, "calibration": calibration,
-            "codec": {CODEC_RAW: "raw", CODEC_ZLIB_RLE: "zlib-rle"}[codec],
+            "codec": {CODEC_RAW: "raw", CODEC_ZLIB_RLE: "zlib-rle", CODEC_SPARSE: "sparse",
+                      CODEC_AUTO: "auto"}[codec],
             "complete": False, "frame_sets": None, "frames_per_camera": None,
             "detections": None, "error": None, **(extra or {}),
         }

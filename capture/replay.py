@@ -25,7 +25,7 @@ from .camera import CameraSettings
 from .detections import Detections2D, read_detections_csv
 from .errors import CameraDisconnected, RecordingError
 from .frame import Frame, TimestampSource
-from .recording import _HDR, CODEC_RAW, CODEC_ZLIB_RLE, FILE_MAGIC, REC_MAGIC
+from .recording import _HDR, FILE_MAGIC, REC_MAGIC, decode_payload
 from .session import FrameSet
 
 __all__ = ["RecordingMetadata", "RecordedFrame", "FrameFileReader", "load_metadata",
@@ -116,12 +116,10 @@ class FrameFileReader:
 
     def _decode(self, hdr: bytes, payload: bytes) -> RecordedFrame:
         (fi, pi, ep, set_ns, seq, ts, src, exp, gain, h, w, bits, codec) = _HDR.unpack(hdr)
-        if codec == CODEC_ZLIB_RLE:
-            payload = zlib.decompress(payload)
-        elif codec != CODEC_RAW:
-            raise RecordingError(str(self.path), f"unknown codec {codec}")
-        dt = np.dtype("<u1") if bits == 8 else np.dtype("<u2")
-        img = np.frombuffer(payload, dtype=dt).reshape(h, w).astype(dt.newbyteorder("="))
+        try:
+            img = decode_payload(payload, codec, (h, w), np.uint8 if bits == 8 else np.uint16)
+        except (ValueError, zlib.error) as e:
+            raise RecordingError(str(self.path), f"record {self.n_read}: {e}") from e
         fr = Frame(image=img, camera_id=self.camera_id, sequence=seq, timestamp_ns=ts,
                    timestamp_source=_SOURCES[src], exposure_us=exp, gain=gain)
         return RecordedFrame(frame=fr, frame_index=fi, pulse_index=pi, epoch=ep,

@@ -16,7 +16,8 @@ from capture.camera import Camera, CameraSettings
 from capture.detections import Detections2D
 from capture.errors import CameraDisconnected, DiskFullError, SyncBoxDisconnected
 from capture.frame import Frame, TimestampSource
-from capture.recording import CODEC_RAW, CODEC_ZLIB_RLE, Recorder, RecordedCamera
+from capture.recording import (_HDR, CODEC_AUTO, CODEC_RAW, CODEC_SPARSE, CODEC_ZLIB_RLE,
+                               Recorder, RecordedCamera, decode_payload, encode_record)
 from capture.replay import (FrameFileReader, ReplayCamera, load_metadata, read_recording,
                             read_recording_detections, recording_frames)
 from capture.session import CaptureSession
@@ -45,7 +46,7 @@ def _cams(n):
             for c in range(n)]
 
 
-@pytest.mark.parametrize("codec", [CODEC_ZLIB_RLE, CODEC_RAW])
+@pytest.mark.parametrize("codec", [CODEC_AUTO, CODEC_SPARSE, CODEC_ZLIB_RLE, CODEC_RAW])
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_round_trip_bit_exact(tmp_path, codec, dtype):
     with Recorder(tmp_path / "rec", _cams(3), rate_hz=100, codec=codec,
@@ -72,6 +73,50 @@ def test_round_trip_bit_exact(tmp_path, codec, dtype):
     f = sets[7].frames[2]
     assert (f.sequence, f.timestamp_ns, f.exposure_us, f.gain, f.camera_id) == \
         (7, 10**12 + 7 * 10**7 + 2, 500.0, 2.0, "c2")
+
+
+_PAYLOAD_AT = 8 + _HDR.size     # u32 magic, u32 length, header
+_CODEC_AT = _PAYLOAD_AT - 1     # the codec is the header's last byte
+
+
+def _sparse_image(rng, h, w, dtype, fill):
+    img = np.zeros((h, w), dtype)
+    mask = rng.random((h, w)) < fill
+    img[mask] = rng.integers(1, np.iinfo(dtype).max, int(mask.sum()))
+    return img
+
+
+@pytest.mark.parametrize("codec", [CODEC_AUTO, CODEC_SPARSE, CODEC_ZLIB_RLE, CODEC_RAW])
+@given(st.integers(1, 40), st.integers(1, 40), st.sampled_from([np.uint8, np.uint16]),
+       st.sampled_from([0.0, 0.001, 0.05, 1.0]), st.integers(0, 2**31))
+@settings(max_examples=20, deadline=None)
+def test_property_codecs_are_lossless(codec, h, w, dtype, fill, seed):
+    img = _sparse_image(np.random.default_rng(seed), h, w, dtype, fill)
+    f = Frame(image=img, camera_id="c0", sequence=0, timestamp_ns=0, exposure_us=1.0,
+              gain=0.0, timestamp_source=TimestampSource.HOST_DEQUEUE)
+    rec = encode_record(f, frame_index=0, codec=codec)
+    used = rec[_CODEC_AT]
+    if codec == CODEC_AUTO:
+        assert used in (CODEC_SPARSE, CODEC_ZLIB_RLE)
+    else:
+        assert used == codec
+    back = decode_payload(rec[_PAYLOAD_AT:-4], used, (h, w), dtype)
+    assert back.dtype == dtype and np.array_equal(back, img)
+
+
+def test_auto_codec_picks_sparse_for_dark_frames():
+    rng = np.random.default_rng(0)
+    dark = _sparse_image(rng, 256, 320, np.uint8, 0.0005)
+    noisy = rng.integers(0, 8, (256, 320)).astype(np.uint8)
+    for img, want in ((dark, CODEC_SPARSE), (noisy, CODEC_ZLIB_RLE)):
+        f = Frame(image=img, camera_id="c0", sequence=0, timestamp_ns=0, exposure_us=1.0,
+                  gain=0.0, timestamp_source=TimestampSource.HOST_DEQUEUE)
+        rec = encode_record(f, frame_index=0)
+        assert rec[_CODEC_AT] == want
+    assert len(encode_record(Frame(image=dark, camera_id="c", sequence=0, timestamp_ns=0,
+                                   exposure_us=1.0, gain=0.0,
+                                   timestamp_source=TimestampSource.HOST_DEQUEUE),
+                             frame_index=0)) < dark.nbytes / 50
 
 
 @given(st.integers(1, 40), st.integers(1, 40), st.sampled_from([np.uint8, np.uint16]),
