@@ -16,9 +16,9 @@ one of three codecs chosen per record: 0 = raw little-endian pixels; 1 = deflate
 with the RLE strategy (plain ``zlib.decompress`` reads it); 2 = sparse blocks: the pixel
 bytes cut into 64-byte blocks, a bitmap (``np.packbits``) of the non-zero blocks, then those
 blocks deflated as in codec 1 (payload ``u32 block, u32 n_blocks, u32 n_nonzero, bitmap,
-deflate``). ``CODEC_AUTO`` picks 2 for mostly-black frames, else 1, and falls back to 0 while
-the writer's queue is more than half full, so a slow disk or CPU costs compression ratio
-before it costs frames. Records are
+deflate``). ``CODEC_AUTO`` picks 2 for mostly-black frames, else 1, and writes 0 while the
+compression cost exceeds the writer's share of the CPUs at the recording rate, or while its
+queue is more than half full: a slow CPU or disk costs compression ratio before frames. Records are
 written by one thread per camera and flushed to the kernel after each record (so ``kill -9``
 loses only frames still queued), and fsynced every ``fsync_interval_s`` (power loss loses
 at most that). A reader stops at the first incomplete or corrupt record at the tail.
@@ -147,10 +147,15 @@ class RecordedCamera:
 class _Writer:
     """One camera's append-only file, written by its own thread from a bounded queue."""
 
+    _PROBE_EVERY = 32
+
     def __init__(self, path: Path, codec: int, qsize: int, fsync_interval_s: float,
-                 file_factory: Callable, on_error: Callable):
+                 file_factory: Callable, on_error: Callable, budget_s: float = float("inf")):
         self.path = path
         self.codec = codec
+        self.budget_s = budget_s      # CPU time per frame this writer may spend compressing
+        self._cost_s = 0.0            # running mean compression time per frame
+        self._n_since_probe = 0
         self.fsync_interval_s = fsync_interval_s
         self.q: queue.Queue = queue.Queue(maxsize=qsize)
         self.f = file_factory(path)
@@ -164,6 +169,19 @@ class _Writer:
         self._last_sync = time.monotonic()
         self.thread = threading.Thread(target=self._loop, daemon=True, name=f"rec {path.name}")
         self.thread.start()
+
+    def _choose_codec(self) -> int:
+        """AUTO: compress while it fits the CPU budget and the queue keeps up, else raw
+        (lossless either way), re-probing the compression cost every 32 frames."""
+        if self.codec != CODEC_AUTO:
+            return self.codec
+        behind = self.q.qsize() > self.q.maxsize // 2
+        if behind or self._cost_s > self.budget_s:
+            self._n_since_probe += 1
+            if self._n_since_probe < self._PROBE_EVERY or behind:
+                return CODEC_RAW
+        self._n_since_probe = 0
+        return CODEC_AUTO
 
     def _sync(self):
         self.f.flush()
@@ -182,10 +200,12 @@ class _Writer:
                     return
                 if item:
                     frame, kw = item
-                    codec = self.codec
-                    if codec == CODEC_AUTO and self.q.qsize() > self.q.maxsize // 2:
-                        codec = CODEC_RAW   # falling behind: keep the frames, lose ratio
+                    codec = self._choose_codec()
+                    t0 = time.thread_time()
                     parts = encode_record_parts(frame, codec=codec, **kw)
+                    if codec != CODEC_RAW:
+                        dt = time.thread_time() - t0
+                        self._cost_s = dt if self._cost_s == 0 else 0.8 * self._cost_s + 0.2 * dt
                     for p in parts:
                         self.f.write(p)
                     self.f.flush()   # in the kernel: survives kill -9
@@ -279,8 +299,10 @@ class Recorder:
         }
         self._write_metadata()
         factory = file_factory or (lambda p: open(p, "xb"))
+        # each writer may use its share of the CPUs (with margin) for compression
+        budget = 0.7 * (os.cpu_count() or 1) / (self.rate_hz * len(self.cameras))
         self._writers = [_Writer(self.folder / frames_file_name(i), codec, queue_frames,
-                                 fsync_interval_s, factory, self._on_error)
+                                 fsync_interval_s, factory, self._on_error, budget)
                          for i in range(len(self.cameras))]
         self.n_frame_sets = 0
 
