@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from .camera import CameraSettings, PixelFormat, TriggerMode
-from .errors import CameraDisconnected, CameraError
+from .errors import CameraDisconnected
 from .frame import Frame, TimestampSource
 
 __all__ = ["OpenCVCamera"]

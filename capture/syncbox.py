@@ -134,10 +134,14 @@ class SyncBox:
         self._reader = threading.Thread(target=self._read_loop, name=f"syncbox-rx {port}",
                                         daemon=True)
         self._reader.start()
-        self._write(b"\x00")
-        self.info = self.version()
-        self.clock.reset(self.info.tick_hz)
-        self.sync_clock(16)
+        try:
+            self._write(b"\x00")
+            self.info = self.version()
+            self.clock.reset(self.info.tick_hz)
+            self.sync_clock(16)
+        except SyncBoxError:
+            self.close()
+            raise
         self._maint = threading.Thread(target=self._maintain_loop,
                                        name=f"syncbox-clock {port}", daemon=True)
         self._maint.start()

@@ -4,7 +4,7 @@ from __future__ import annotations
 import shutil
 import sys
 
-from capture.camera import CameraSettings, PixelFormat, TriggerMode
+from capture.camera import CameraSettings, PixelFormat
 from capture.errors import CaptureError
 from capture.live import record_live
 from capture.syncbox import SyncBox, SyncConfig

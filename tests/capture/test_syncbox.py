@@ -4,7 +4,7 @@ import time
 import numpy as np
 import pytest
 
-from capture.errors import SyncBoxDisconnected, SyncBoxNak, SyncProtocolError
+from capture.errors import SyncBoxDisconnected, SyncBoxNak, SyncBoxTimeout, SyncProtocolError
 from capture.sync_protocol import NakCode
 from capture.syncbox import SyncBox, SyncConfig
 from hw_sim.syncbox import SimSyncBox
@@ -139,3 +139,30 @@ def test_sustained_garbage_is_a_protocol_error(sim):
 def test_missing_port_is_clear_error(tmp_path):
     with pytest.raises(SyncBoxDisconnected, match="nothing-here"):
         SyncBox(str(tmp_path / "nothing-here"))
+
+
+def test_silent_device_times_out_and_releases_the_port():
+    import os
+    import tty
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        with pytest.raises(SyncBoxTimeout) as e:
+            SyncBox(os.ttyname(slave), request_timeout_s=0.1)
+        assert "GET_VERSION" in str(e.value) and os.ttyname(slave) in str(e.value)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.hardware
+def test_real_sync_box():
+    """A box on $MOCAP_TEST_SYNC (default /dev/ttyACM0): pytest --run-hardware."""
+    import os
+    with SyncBox(os.environ.get("MOCAP_TEST_SYNC", "/dev/ttyACM0")) as box:
+        box.configure(SyncConfig(rate_hz=100))
+        box.start()
+        pulses = _collect(box, 1.0)
+        box.stop()
+        assert len(pulses) >= 90 and box.clock.fit.ok
+        assert abs(box.clock.fit.drift_ppm) < 500
