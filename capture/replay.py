@@ -48,6 +48,14 @@ class RecordingMetadata:
     detections: str | None
     raw: dict
 
+    @property
+    def calibration_path(self) -> Path | None:
+        """The calibration file, resolved against the folder when relative."""
+        if not self.calibration:
+            return None
+        p = Path(self.calibration)
+        return p if p.is_absolute() else self.path / p
+
 
 @dataclass(frozen=True, kw_only=True)
 class RecordedFrame:

@@ -337,20 +337,28 @@ class SimCamera:
                 pass
 
 
-def sim_rig(n_cameras: int, *, size=(320, 256), scene: Scene | None = None,
-            drift_ppm: float = 50.0, rng=None):
-    """A simulated sync box and ``n_cameras`` SimCameras wired to its trigger line.
+def sim_rig(n_cameras: int | None = None, *, rig=None, size=(320, 256),
+            scene: Scene | None = None, drift_ppm: float = 50.0, rng=None):
+    """A simulated sync box and SimCameras wired to its trigger line.
 
-    Returns ``(box, cameras)``; the caller opens ``box.port`` with the host driver and
+    Cameras come from ``rig`` (a ``calibration.camera.Rig``) or from
+    ``hw_sim.rig.make_rig(n_cameras, size=size)``; ``scene`` is ``t_s -> (points, diameters)``
+    (e.g. ``MarkerScene.at_time``; default: markers circling the volume centre).
+    Returns ``(box, cameras, rig)``; the caller opens ``box.port`` with the host driver and
     closes everything. Cameras share one scene clock (origin: now).
     """
     from hw_sim.syncbox import SimSyncBox
 
-    if n_cameras < 1:
-        raise ValueError(f"n_cameras={n_cameras}, expected >= 1")
     rng = np.random.default_rng(rng)
+    if rig is None:
+        if n_cameras is None or n_cameras < 1:
+            raise ValueError(f"n_cameras={n_cameras}, expected >= 1 (or give a rig)")
+        from hw_sim.rig import make_rig
+        rig = make_rig(n_cameras, size=tuple(size), rng=rng)
+    if scene is None:
+        scene = orbiting_markers(8, height_m=1.25)
     box = SimSyncBox(drift_ppm=drift_ppm, rng=rng)
     origin = time.monotonic_ns()
     cams = [SimCamera(m, scene=scene, sync=box, time_origin_ns=origin, rng=rng)
-            for m in ring_of_cameras(n_cameras, size=size)]
-    return box, cams
+            for m in rig.cameras]
+    return box, cams, rig

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import shutil
 import sys
+from pathlib import Path
 
 from capture.camera import CameraSettings, PixelFormat
 from capture.errors import CaptureError
@@ -29,7 +30,9 @@ def register(subparsers) -> None:
     p.add_argument("--gain", type=float, default=None)
     p.add_argument("--pixel-format", choices=[f.name for f in PixelFormat], default=None)
     p.add_argument("--duration", type=float, default=5.0, help="seconds to record")
-    p.add_argument("--calibration", default=None, help="calibration TOML this session uses")
+    p.add_argument("--calibration", default=None,
+                   help="calibration TOML this session uses (--sim: the true rig is saved "
+                        "as DIR/sim_rig.toml)")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated rig")
     p.add_argument("--out", required=True, metavar="DIR", help="session folder to create")
     p.set_defaults(func=run)
@@ -50,9 +53,14 @@ def run(args) -> int:
     sim_box, cameras, box = None, [], None
     try:
         if args.sim:
+            from calibration.rig_io import save_rig
             from hw_sim.sim_camera import sim_rig
-            sim_box, cameras = sim_rig(args.cameras, size=tuple(args.size), rng=args.seed)
+            sim_box, cameras, rig = sim_rig(args.cameras, size=tuple(args.size), rng=args.seed)
             port = sim_box.port
+            if args.calibration is None:  # the simulated rig's true calibration, inside
+                Path(args.out).mkdir(parents=True, exist_ok=True)
+                save_rig(rig, Path(args.out) / "sim_rig.toml")
+                args.calibration = "sim_rig.toml"
         else:
             cameras = [_open_camera(path, args.backend) for path in args.camera]
             port = args.sync

@@ -23,6 +23,9 @@ def test_capture_sim_cli_records_a_readable_folder(tmp_path, capsys):
     assert meta.complete and meta.camera_ids == ("cam_1", "cam_2")
     assert meta.sync["rate_hz"] == 50 and meta.sync["port"].startswith("/dev/pts/")
     assert meta.settings[0].width == 96
+    from calibration.rig_io import load_rig
+    rig = load_rig(meta.calibration_path)         # the simulated rig's true calibration
+    assert list(rig.names) == ["cam_1", "cam_2"]
     rows = list(recording_frames(out))
     assert len(rows) >= MIN_SETS_FRACTION * 50 * 0.8
     assert rows[0][1][0].shape == (64, 96)
@@ -34,7 +37,7 @@ def test_capture_cli_rejects_ambiguous_sources(tmp_path, capsys):
 
 
 def test_record_live_goes_on_when_a_camera_is_lost(tmp_path):
-    sim, cams = sim_rig(3, size=(96, 64), rng=4)
+    sim, cams, _ = sim_rig(3, size=(96, 64), rng=4)
     cams[1].disappear_after_frames = 20
     box = SyncBox(sim.port)
     box.configure(SyncConfig(rate_hz=100))
