@@ -25,7 +25,8 @@ import numpy as np
 
 from capture.frame import Frame, TimestampSource
 from capture.recording import CODEC_AUTO, RecordedCamera, Recorder
-from hw_sim.sim_camera import _placeholder_render, orbiting_markers, ring_of_cameras
+from hw_sim.render import render_frame
+from hw_sim.sim_camera import orbiting_markers, ring_of_cameras
 
 
 def make_frames(n_cams, size, kind, per_cam=3, seed=0):
@@ -37,7 +38,7 @@ def make_frames(n_cams, size, kind, per_cam=3, seed=0):
         imgs = []
         for k in range(per_cam):
             pts, d = scene(0.1 * k)
-            img = _placeholder_render(m, pts, d, rng, 8)
+            img, _ = render_frame(m, pts, d, rng, bit_depth=8)
             if kind == "clean":
                 img = np.where(img > 20, img, 0).astype(np.uint8)
             imgs.append(img)

@@ -3,8 +3,9 @@
 Each time query gives ``(host_send_ns, device_ticks, host_recv_ns)``: the device read its
 counter somewhere inside ``[send, recv]``, so the round-trip midpoint is an estimate of the
 host time of the tick with error at most ``rtt / 2``. The model keeps a sliding window of
-samples, fits only the shortest round trips (the ones queueing did not delay), rejects
-residual outliers (MAD), and detects a device reset when the counter runs backwards.
+samples, fits only the shortest round trips (the ones queueing did not delay) by weighted
+least squares (weight 1/(rtt/2)^2) with a prior pulling the gain to 1 while the samples span
+too little time to measure drift, rejects residual outliers (MAD), and detects a device reset when the counter runs backwards.
 
 Conventions: docs/conventions.md [time] (host ``time.monotonic_ns()``).
 """
@@ -81,10 +82,12 @@ class ClockModel:
         window: number of most recent samples kept.
         keep_fraction: fraction of the window with the shortest round trips used for the fit.
         min_samples: samples needed before a fit is ``ok``.
+        prior_ppm: spread of oscillator errors expected (crystals: tens of ppm); the gain
+            is pulled towards 1 with this standard deviation.
     """
 
     def __init__(self, tick_hz: float = 1e6, *, window: int = 64, keep_fraction: float = 0.5,
-                 min_samples: int = 4):
+                 min_samples: int = 4, prior_ppm: float = 200.0):
         if not tick_hz > 0:
             raise ValueError(f"tick_hz={tick_hz}, expected > 0")
         if window < 2:
@@ -94,6 +97,9 @@ class ClockModel:
         self.tick_hz = float(tick_hz)
         self.min_samples = int(min_samples)
         self.keep_fraction = float(keep_fraction)
+        if not prior_ppm > 0:
+            raise ValueError(f"prior_ppm={prior_ppm}, expected > 0")
+        self.prior_ppm = float(prior_ppm)
         self._samples: deque[ClockSample] = deque(maxlen=int(window))
         self.resets = 0
         self._fit = ClockFit(ok=False, reason="no samples", tick_hz=self.tick_hz)
@@ -123,6 +129,17 @@ class ClockModel:
     def n_samples(self) -> int:
         return len(self._samples)
 
+    def _solve(self, x, y, w) -> tuple[float, float]:
+        """Weighted least squares of y = gain * x + off with a Gaussian prior on the gain
+        around 1 (std ``prior_ppm``): a burst of queries spanning milliseconds cannot
+        fix the drift, so the nominal rate holds until the samples span enough time."""
+        lam = 1.0 / (self.prior_ppm * 1e-6) ** 2
+        sw = w.sum()
+        xm, ym = (w * x).sum() / sw, (w * y).sum() / sw
+        dx, dy = x - xm, y - ym
+        gain = ((w * dx * dy).sum() + lam) / ((w * dx * dx).sum() + lam)
+        return float(gain), float(ym - gain * xm)
+
     def _refit(self) -> ClockFit:
         s = list(self._samples)
         if len(s) < self.min_samples:
@@ -137,20 +154,18 @@ class ClockModel:
         host_ref = float(host.min())
         x = (dev - dev_ref).astype(np.float64) * (1e9 / self.tick_hz)
         y = host - host_ref
-        if np.ptp(x) <= 0:
-            return ClockFit(ok=False, reason="all samples at the same device time",
-                            tick_hz=self.tick_hz)
-        w = 1.0 / (0.5 * rtt[idx] + 1e3)  # shorter round trips weigh more (floor 1 us)
+        sigma = np.maximum(0.5 * rtt[idx], 1e3)   # each sample is within rtt/2 (floor 1 us)
+        w = 1.0 / sigma ** 2
         keep = np.ones(len(x), bool)
         for _ in range(3):
-            gain, off = np.polyfit(x[keep], y[keep], 1, w=w[keep])
+            gain, off = self._solve(x[keep], y[keep], w[keep])
             r = y - (gain * x + off)
             mad = np.median(np.abs(r[keep] - np.median(r[keep]))) * 1.4826
             new = np.abs(r) <= max(4.0 * mad, 0.5 * rtt[idx].min() + 1e3)
             if new.sum() < self.min_samples or np.array_equal(new, keep):
                 break
             keep = new
-        gain, off = np.polyfit(x[keep], y[keep], 1, w=w[keep])
+        gain, off = self._solve(x[keep], y[keep], w[keep])
         r = y[keep] - (gain * x[keep] + off)
         return ClockFit(ok=True, gain=float(gain), device_ref_ticks=dev_ref,
                         host_ref_ns=host_ref + float(off), tick_hz=self.tick_hz,

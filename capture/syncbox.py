@@ -283,7 +283,10 @@ class SyncBox:
                 last = SyncBoxTimeout(self.port, f"no reply to {mtype.name} (seq {seq}) "
                                                  f"within {self.request_timeout_s} s")
                 continue
-            reply: Message = slot[1]
+            reply: Message | None = slot[1]
+            if reply is None:  # the box rebooted while we waited: ask again
+                last = SyncBoxTimeout(self.port, f"box reset during {mtype.name}")
+                continue
             if reply.type == MsgType.NAK:
                 code = reply.code
                 name = NakCode(code).name if code in NakCode._value2member_map_ else str(code)
@@ -309,6 +312,8 @@ class SyncBox:
         self._last_index = None
         self.clock.reset()
         self._need_reconfigure.set()
+        for slot in self._pending.values():  # requests the rebooting box never heard
+            slot[0].set()
 
     def _read_loop(self) -> None:
         splitter = FrameSplitter()

@@ -8,8 +8,7 @@ monotonic clock with small jitter, and are delivered after a readout latency. Li
 has a fixed number of buffers: when the reader does not keep up, frames are dropped and the
 sequence number still advances. Faults: ``disappear()``, random drops, late delivery.
 
-Images come from ``hw_sim.render.render_frame`` when that module exists; until then from a
-clearly temporary placeholder renderer (``_placeholder_render``).
+Images come from ``hw_sim.render.render_frame`` (blobs, read and shot noise, bit depth).
 Conventions: docs/conventions.md [pixels], [time], [frames].
 """
 from __future__ import annotations
@@ -26,6 +25,7 @@ from calibration.camera import Camera as CameraModel, look_at
 from capture.camera import CameraSettings, PixelFormat, TriggerMode
 from capture.errors import CameraDisconnected
 from capture.frame import Frame, TimestampSource
+from hw_sim.render import render_frame
 
 __all__ = ["SimCamera", "Scene", "orbiting_markers", "ring_of_cameras", "sim_rig"]
 
@@ -34,7 +34,8 @@ Scene = Callable[[float], tuple[np.ndarray, np.ndarray]]  # t_s -> (points (N,3)
 _EXPOSURE_STEP_US = 10.0   # exposure is applied in whole sensor lines (~10 us)
 _GAIN_STEP = 1.0 / 16.0
 _GAIN_RANGE = (1.0, 16.0)
-_READOUT_NS_PER_ROW = 15_000  # rolling readout; end-of-frame = start + exposure + rows * this
+_READOUT_NS_PER_ROW = 15_000
+_FORMATS = {8: PixelFormat.GREY, 10: PixelFormat.Y10, 16: PixelFormat.Y16}  # rolling readout; end-of-frame = start + exposure + rows * this
 
 
 def orbiting_markers(n: int = 5, *, radius_m: float = 0.5, height_m: float = 1.0,
@@ -64,39 +65,6 @@ def ring_of_cameras(n: int, *, size=(320, 256), radius_m: float = 3.0, height_m:
     return cams
 
 
-def _placeholder_render(model: CameraModel, points: np.ndarray, diameters: np.ndarray,
-                        rng: np.random.Generator, bit_depth: int) -> np.ndarray:
-    """TEMPORARY stand-in for hw_sim.render.render_frame: Gaussian blobs, read noise."""
-    w, h = model.size
-    top = (1 << bit_depth) - 1
-    img = rng.normal(0.02 * top, 0.004 * top, size=(h, w))
-    if len(points):
-        depth = model.depth(points)
-        uv = model.project(points)
-        for (u, v), z, d in zip(uv, depth, diameters):
-            if not z > 0 or not np.isfinite(u):
-                continue
-            sigma = max(0.6, 0.5 * d * model.K[0, 0] / z / 2.0)
-            r = int(np.ceil(4 * sigma))
-            c0, r0 = int(round(u)), int(round(v))
-            if c0 + r < 0 or c0 - r >= w or r0 + r < 0 or r0 - r >= h:
-                continue
-            ys = np.arange(max(0, r0 - r), min(h, r0 + r + 1))
-            xs = np.arange(max(0, c0 - r), min(w, c0 + r + 1))
-            g = np.exp(-((ys[:, None] - v) ** 2 + (xs[None, :] - u) ** 2) / (2 * sigma ** 2))
-            img[ys[0]:ys[-1] + 1, xs[0]:xs[-1] + 1] += 0.9 * top * g
-    dtype = np.uint8 if bit_depth <= 8 else np.uint16
-    return np.clip(np.rint(img), 0, top).astype(dtype)
-
-
-def _renderer():
-    try:
-        from hw_sim.render import render_frame  # written by the hw_sim rendering work
-    except ImportError:
-        return None
-    return render_frame
-
-
 class SimCamera:
     """Simulated camera (see module docstring).
 
@@ -104,7 +72,8 @@ class SimCamera:
         model: calibrated camera model (pose, intrinsics, size); ``model.name`` is the id.
         scene: ``t_s -> (points (N,3), diameters (N,))``; time since ``time_origin_ns``.
         sync: simulated sync box whose trigger line starts each exposure, or None.
-        bit_depth: 8 (GREY) or 10 (Y10).
+        bit_depth: 8 (GREY), 10 (Y10) or 16 (Y16).
+        render_options: extra keyword arguments of ``hw_sim.render.render_frame``.
         n_buffers: driver buffers; when all hold undelivered frames, new frames are dropped.
         latency_ms: exposure start -> frame available (readout + USB + driver).
         timestamp_jitter_us: std of the kernel timestamp noise.
@@ -116,9 +85,9 @@ class SimCamera:
                  rate_hz: float = 100.0,
                  timestamp_source: TimestampSource = TimestampSource.KERNEL_START_OF_EXPOSURE,
                  n_buffers: int = 4, latency_ms: float = 3.0, timestamp_jitter_us: float = 20.0,
-                 time_origin_ns: int = 0, rng=None):
-        if bit_depth not in (8, 10):
-            raise ValueError(f"bit_depth={bit_depth}, expected 8 or 10")
+                 time_origin_ns: int = 0, render_options: dict | None = None, rng=None):
+        if bit_depth not in _FORMATS:
+            raise ValueError(f"bit_depth={bit_depth}, expected one of {sorted(_FORMATS)}")
         if timestamp_source not in (TimestampSource.KERNEL_START_OF_EXPOSURE,
                                     TimestampSource.KERNEL_END_OF_FRAME):
             raise ValueError(f"timestamp_source={timestamp_source}, expected a kernel source")
@@ -133,10 +102,11 @@ class SimCamera:
         self.timestamp_jitter_ns = timestamp_jitter_us * 1e3
         self.time_origin_ns = int(time_origin_ns)
         self.rng = np.random.default_rng(rng)
+        self.render_options = dict(render_options or {})
         self.device = f"sim:{model.name}"
         w, h = model.size
         self._settings = CameraSettings(
-            width=w, height=h, pixel_format=PixelFormat.GREY if bit_depth == 8 else PixelFormat.Y10,
+            width=w, height=h, pixel_format=_FORMATS[bit_depth],
             rate_hz=float(rate_hz), exposure_us=self._quant_exposure(exposure_us),
             gain=self._quant_gain(gain),
             trigger=TriggerMode.EXTERNAL if sync is not None else TriggerMode.FREE_RUN)
@@ -173,9 +143,9 @@ class SimCamera:
         cur = self._settings
         w, h = self.model.size  # fixed-size sensor: a size request is not honoured
         fmt = cur.pixel_format
-        if settings.pixel_format in (PixelFormat.GREY, PixelFormat.Y10):
+        if settings.pixel_format in _FORMATS.values():
             fmt = settings.pixel_format
-            self.bit_depth = 8 if fmt == PixelFormat.GREY else 10
+            self.bit_depth = {v: k for k, v in _FORMATS.items()}[fmt]
         self._settings = CameraSettings(
             width=w, height=h, pixel_format=fmt,
             rate_hz=cur.rate_hz if settings.rate_hz is None else float(settings.rate_hz),
@@ -288,7 +258,6 @@ class SimCamera:
             k += 1
 
     def _work(self) -> None:
-        render = _renderer()
         while not self._stop.is_set():
             try:
                 index, pulse_ns = self._triggers.get(timeout=0.05)
@@ -304,11 +273,8 @@ class SimCamera:
             s = self._settings
             t_s = (pulse_ns - self.time_origin_ns) * 1e-9
             pts, diam = self.scene(t_s)
-            if render is not None:
-                img = render(self.model, pts, diam, rng=self.rng, bit_depth=self.bit_depth)
-                img = img[0] if isinstance(img, tuple) else img
-            else:
-                img = _placeholder_render(self.model, pts, diam, self.rng, self.bit_depth)
+            img, _ = render_frame(self.model, pts, diam, self.rng, bit_depth=self.bit_depth,
+                                  **self.render_options)
             ts = pulse_ns + self.rng.normal(0.0, self.timestamp_jitter_ns)
             if self.timestamp_source == TimestampSource.KERNEL_END_OF_FRAME:
                 ts += s.exposure_us * 1e3 + self.model.size[1] * _READOUT_NS_PER_ROW

@@ -86,3 +86,23 @@ def test_bad_arguments():
         ClockModel(0)
     with pytest.raises(ValueError, match="host_recv_ns"):
         ClockSample(host_send_ns=10, device_ticks=0, host_recv_ns=5)
+
+
+def test_short_burst_does_not_invent_drift():
+    """16 queries in 8 ms with 100 us noise cannot measure 50 ppm; the prior keeps the
+    gain near nominal so extrapolating 1 s ahead stays within prior_ppm * 1 s + bound."""
+    rng = np.random.default_rng(3)
+    gain_true, off = 1 - 50e-6, 7e11
+    m = ClockModel(1e6, prior_ppm=200.0)
+    for i in range(16):
+        send = 10**12 + i * 500_000
+        up, down = rng.exponential(100e3, 2)
+        ticks = int((send + up - off) / gain_true / 1000.0)
+        t = off + gain_true * ticks * 1000.0
+        m.add(ClockSample(host_send_ns=int(t - up), device_ticks=ticks,
+                          host_recv_ns=int(t + down)))
+    fit = m.fit
+    assert abs(fit.drift_ppm) < 200.0
+    ticks_1s = ticks + 1_000_000
+    err = abs(fit.to_host_ns(ticks_1s) - (off + gain_true * ticks_1s * 1000.0))
+    assert err < 250e-6 * 1e9 + 2 * fit.bound_ns

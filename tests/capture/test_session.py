@@ -189,3 +189,19 @@ def test_end_of_frame_timestamps_learn_their_offset(rig):
         c.close()
     _check_matching(sets, cams)
     assert st.complete_sets >= MIN_SETS_FRACTION * RATE_HZ * DURATION_S - 10
+
+
+def test_session_survives_a_sync_box_reset(rig):
+    sim, box, cams = rig
+    sets = []
+    session = CaptureSession(cams, box, on_frame_set=sets.append)
+    session.start()
+    time.sleep(0.4)
+    sim.reset()
+    time.sleep(0.8)
+    st = session.stop()
+    assert box.stats().resets == 1
+    _check_matching(sets, cams)
+    after = [fs for fs in sets if fs.epoch == 1]
+    assert len(after) >= 20 and all(fs.complete for fs in after[2:])
+    assert st.cameras[0].connected

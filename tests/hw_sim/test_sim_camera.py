@@ -131,6 +131,6 @@ def test_disappear_raises_disconnected(box):
 
 def test_bad_arguments():
     with pytest.raises(ValueError, match="bit_depth"):
-        SimCamera(ring_of_cameras(1)[0], bit_depth=12)
+        SimCamera(ring_of_cameras(1)[0], bit_depth=12)  # no V4L2 format for 12-bit here
     with pytest.raises(ValueError, match="timestamp_source"):
         SimCamera(ring_of_cameras(1)[0], timestamp_source=TimestampSource.HOST_DEQUEUE)
