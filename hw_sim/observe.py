@@ -228,38 +228,41 @@ class Observation:
         return out
 
 
-def _merge_groups(xy, radius_px, factor):
-    """Components of blobs whose centres are closer than ``factor * (r_i + r_j)``."""
+def _merge_labels(vis: Visibility, factor: float) -> np.ndarray | None:
+    """Merge groups of visible blobs, one label per (t, c, m) node (flattened), or None.
+
+    Two visible blobs of one image merge when their centres are closer than ``factor`` times
+    the sum of their radii; groups are the connected components of that relation.
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    n = len(xy)
-    dist = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
-    close = dist < factor * (radius_px[:, None] + radius_px[None])
-    np.fill_diagonal(close, False)
-    if not close.any():
-        return None
-    i, j = np.nonzero(close)
-    g = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
-    _, lab = connected_components(g, directed=False)
-    return lab
-
-
-def _images_with_close_pairs(vis: Visibility, factor: float) -> np.ndarray:
-    """(T, C) bool: some pair of visible blobs in that image may merge."""
     T, C, M = vis.visible.shape
-    out = np.zeros((T, C), dtype=bool)
+    if M < 2:
+        return None
+    iu, ju = np.triu_indices(M, 1)
     step = max(1, 2_000_000 // max(C * M * M, 1))
-    iu = np.triu_indices(M, 1)
+    src, dst = [], []
     for t0 in range(0, T, step):
         sl = slice(t0, t0 + step)
-        xy = np.where(vis.visible[sl, ..., None], vis.projections[sl], np.nan)
-        r = np.where(vis.visible[sl], vis.diameter_px[sl] / 2, np.nan)
-        d = np.linalg.norm(xy[..., :, None, :] - xy[..., None, :, :], axis=-1)[..., iu[0], iu[1]]
-        lim = factor * (r[..., :, None] + r[..., None, :])[..., iu[0], iu[1]]
+        v = vis.visible[sl]
+        xy = vis.projections[sl]
+        r = vis.diameter_px[sl] / 2
+        d2 = np.sum((xy[..., iu, :] - xy[..., ju, :]) ** 2, axis=-1)
+        lim = factor * (r[..., iu] + r[..., ju])
         with np.errstate(invalid="ignore"):
-            out[sl] = np.any(d < lim, axis=-1)
-    return out
+            close = v[..., iu] & v[..., ju] & (d2 < lim ** 2)
+        tt, cc, pp = np.nonzero(close)
+        base = ((tt + t0) * C + cc) * M
+        src.append(base + iu[pp])
+        dst.append(base + ju[pp])
+    src, dst = np.concatenate(src), np.concatenate(dst)
+    if not src.size:
+        return None
+    n = T * C * M
+    g = coo_matrix((np.ones(src.size, np.int8), (src, dst)), shape=(n, n))
+    _, lab = connected_components(g, directed=False)
+    return lab
 
 
 def observe(rig: Rig, scene: MarkerScene, rng=None, *, noise_px: float = 0.05,
@@ -295,40 +298,28 @@ def observe(rig: Rig, scene: MarkerScene, rng=None, *, noise_px: float = 0.05,
     rows_id = [m_idx.astype(np.int64)]
     rows_xy = [vis.projections[t_idx, c_idx, m_idx]]
     rows_merged = [np.zeros(len(t_idx), dtype=bool)]
-    keep = np.ones(len(t_idx), dtype=bool)
-    if merge_blobs and len(t_idx):
-        # candidate images: some pair of visible blobs closer than the largest blob size
-        starts = np.flatnonzero(np.r_[True, (t_idx[1:] != t_idx[:-1]) | (c_idx[1:] != c_idx[:-1])])
-        ends = np.r_[starts[1:], len(t_idx)]
-        rad = vis.diameter_px[t_idx, c_idx, m_idx] / 2
-        new_f, new_c, new_id, new_xy = [], [], [], []
-        cand = _images_with_close_pairs(vis, merge_factor)
-        for s0, e0 in zip(starts, ends):
-            if e0 - s0 < 2 or not cand[t_idx[s0], c_idx[s0]]:
-                continue
-            lab = _merge_groups(rows_xy[0][s0:e0], rad[s0:e0], merge_factor)
-            if lab is None:
-                continue
-            for L in np.unique(lab):
-                members = np.flatnonzero(lab == L)
-                if len(members) < 2:
-                    continue
-                idx = s0 + members
-                keep[idx] = False
-                merged[t_idx[idx], c_idx[idx], m_idx[idx]] = True
-                w = rad[idx] ** 2
-                new_f.append(t_idx[s0])
-                new_c.append(c_idx[s0])
-                new_id.append(m_idx[idx][np.argmax(w)])
-                new_xy.append((w[:, None] * rows_xy[0][idx]).sum(0) / w.sum())
-        for a in (rows_f, rows_c, rows_id, rows_xy, rows_merged):
-            a[0] = a[0][keep]
-        if new_f:
-            rows_f.append(np.array(new_f))
-            rows_c.append(np.array(new_c))
-            rows_id.append(np.array(new_id, dtype=np.int64))
-            rows_xy.append(np.array(new_xy))
-            rows_merged.append(np.ones(len(new_f), dtype=bool))
+    lab = _merge_labels(vis, merge_factor) if merge_blobs and len(t_idx) else None
+    if lab is not None:
+        node_lab = lab[(t_idx * C + c_idx) * M + m_idx]
+        size = np.bincount(node_lab)
+        in_group = size[node_lab] >= 2
+        merged[t_idx[in_group], c_idx[in_group], m_idx[in_group]] = True
+        gl = node_lab[in_group]
+        w = (vis.diameter_px[t_idx, c_idx, m_idx][in_group] / 2) ** 2  # blob area weights
+        xy_g = rows_xy[0][in_group]
+        uniq, inv = np.unique(gl, return_inverse=True)
+        wsum = np.bincount(inv, w)
+        mxy = np.stack([np.bincount(inv, w * xy_g[:, 0]), np.bincount(inv, w * xy_g[:, 1])],
+                       axis=1) / wsum[:, None]
+        order = np.lexsort((-w, inv))              # per group, the largest blob first
+        first = order[np.r_[True, inv[order][1:] != inv[order][:-1]]]
+        for a_ in (rows_f, rows_c, rows_id, rows_xy, rows_merged):
+            a_[0] = a_[0][~in_group]
+        rows_f.append(t_idx[in_group][first])
+        rows_c.append(c_idx[in_group][first])
+        rows_id.append(m_idx[in_group][first].astype(np.int64))
+        rows_xy.append(mxy)
+        rows_merged.append(np.ones(len(uniq), dtype=bool))
     true_xy = np.concatenate(rows_xy) if rows_xy else np.zeros((0, 2))
     noisy = true_xy + g.normal(0.0, noise_px, true_xy.shape) if noise_px > 0 else true_xy.copy()
     if spurious_per_frame > 0:
