@@ -113,15 +113,26 @@ def _occluded(centre, pts, trim, segs, radii) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         end = pts - v / n * trim[None, :, None]
     out = np.zeros((F, M), dtype=bool)
+    mid = segs.mean(axis=2)                                           # (F, S, 3)
+    reach = np.linalg.norm(segs[:, :, 1] - segs[:, :, 0], axis=-1) / 2 + radii  # (F, S)
     step = max(1, _CHUNK_ELEMENTS // max(M * S, 1))
     for f0 in range(0, F, step):
         sl = slice(f0, f0 + step)
-        e = end[sl][:, :, None, :]                      # (f, M, 1, 3)
-        q0 = segs[sl, :, 0][:, None, :, :]              # (f, 1, S, 3)
-        q1 = segs[sl, :, 1][:, None, :, :]
-        d = segment_distance(centre, e, q0, q1)         # (f, M, S)
-        with np.errstate(invalid="ignore"):
-            out[sl] = np.any(d < radii, axis=-1)
+        # cheap pre-test: sight line within reach of the capsule's bounding sphere
+        d1 = end[sl] - centre                                         # (f, M, 3)
+        w = mid[sl][:, None, :, :] - centre                           # (f, 1, S, 3)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tpar = np.clip(np.einsum("fmi,fmsi->fms", d1, w)
+                           / np.einsum("fmi,fmi->fm", d1, d1)[..., None], 0.0, 1.0)
+            gap = np.linalg.norm(tpar[..., None] * d1[:, :, None, :] - w, axis=-1)
+            cand = gap < reach[sl][:, None, :]                        # (f, M, S)
+        ff, mm, ss = np.nonzero(cand)
+        if not ff.size:
+            continue
+        seg = segs[sl][ff, ss]                                        # (K, 2, 3)
+        d = segment_distance(centre, end[sl][ff, mm], seg[:, 0], seg[:, 1])
+        hit = d < radii[ss]
+        out[f0 + ff[hit], mm[hit]] = True
     return out
 
 
