@@ -189,7 +189,8 @@ class Observation:
 
     Attributes:
         detections: the 2D table the cameras report (raw distorted px, shuffled per
-            camera/frame; frames 0..T-1).
+            camera/frame; frames 0..T-1; ``area_px`` = imaged disc area, summed for merged
+            blobs).
         marker_id: (K,) int64 true marker index of each detection row; -1 = spurious.
         true_xy: (K, 2) noise-free pixel of each row (for a merged blob: the area-weighted
             mean of its members; for a spurious blob: its own position).
@@ -309,6 +310,7 @@ def observe(rig: Rig, scene: MarkerScene, rng=None, *, noise_px: float = 0.05,
     rows_id = [m_idx.astype(np.int64)]
     rows_xy = [vis.projections[t_idx, c_idx, m_idx]]
     rows_merged = [np.zeros(len(t_idx), dtype=bool)]
+    rows_area = [np.pi / 4 * vis.diameter_px[t_idx, c_idx, m_idx] ** 2]
     lab = _merge_labels(vis, merge_factor) if merge_blobs and len(t_idx) else None
     if lab is not None:
         node_lab = lab[(t_idx * C + c_idx) * M + m_idx]
@@ -324,13 +326,14 @@ def observe(rig: Rig, scene: MarkerScene, rng=None, *, noise_px: float = 0.05,
                        axis=1) / wsum[:, None]
         order = np.lexsort((-w, inv))              # per group, the largest blob first
         first = order[np.r_[True, inv[order][1:] != inv[order][:-1]]]
-        for a_ in (rows_f, rows_c, rows_id, rows_xy, rows_merged):
+        for a_ in (rows_f, rows_c, rows_id, rows_xy, rows_merged, rows_area):
             a_[0] = a_[0][~in_group]
         rows_f.append(t_idx[in_group][first])
         rows_c.append(c_idx[in_group][first])
         rows_id.append(m_idx[in_group][first].astype(np.int64))
         rows_xy.append(mxy)
         rows_merged.append(np.ones(len(uniq), dtype=bool))
+        rows_area.append(np.pi * wsum)
     true_xy = np.concatenate(rows_xy) if rows_xy else np.zeros((0, 2))
     noisy = true_xy + g.normal(0.0, noise_px, true_xy.shape) if noise_px > 0 else true_xy.copy()
     if spurious_per_frame > 0:
@@ -346,14 +349,17 @@ def observe(rig: Rig, scene: MarkerScene, rng=None, *, noise_px: float = 0.05,
         true_xy = np.concatenate([true_xy, sp])
         noisy = np.concatenate([noisy, sp])
         rows_merged.append(np.zeros(len(tt), dtype=bool))
+        rows_area.append(g.uniform(2.0, 30.0, len(tt)))  # reflections of assorted sizes
     f = np.concatenate(rows_f).astype(np.int64)
     c = np.concatenate(rows_c).astype(np.int64)
     ids = np.concatenate(rows_id)
     mr = np.concatenate(rows_merged)
+    area = np.concatenate(rows_area)
     order = np.lexsort((g.random(len(f)), c, f))  # shuffled within each (frame, camera)
-    f, c, ids, mr, true_xy, noisy = (a[order] for a in (f, c, ids, mr, true_xy, noisy))
+    f, c, ids, mr, true_xy, noisy, area = (a[order] for a in (f, c, ids, mr, true_xy, noisy,
+                                                              area))
     det = Detections2D(frame=f, camera=c, xy=noisy, camera_names=tuple(rig.names),
-                       rate_hz=scene.rate_hz)
+                       rate_hz=scene.rate_hz, area_px=area)
     return Observation(detections=det, marker_id=_ro(ids), true_xy=_ro(true_xy),
                        merged_row=_ro(mr), positions=scene.positions,
                        projections=vis.projections, diameter_px=vis.diameter_px,

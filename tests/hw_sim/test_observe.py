@@ -43,6 +43,10 @@ def test_noise_free_detections_are_the_camera_projections():
                        for f, c, m in zip(det.frame, det.camera, obs.marker_id)])
     assert np.abs(det.xy - expect).max() < EXACT_PX
     assert np.array_equal(det.xy, obs.true_xy)
+    depth = np.array([rig[c].depth(scene.positions[f, m][None])[0]
+                      for f, c, m in zip(det.frame, det.camera, obs.marker_id)])
+    assert np.allclose(det.area_px, np.pi / 4 * (0.014 * rig[0].K[0, 0] / depth) ** 2,
+                       rtol=1e-12)
     # every visible (frame, camera, marker) appears exactly once
     assert len(det) == obs.visible.sum()
     L = obs.labelled_xy()
@@ -129,6 +133,8 @@ def test_close_markers_merge_into_one_blob():
     mid = rig.project(P[0, :2].mean(0)[None])[:, 0]
     rows = obs.merged_row
     assert np.abs(obs.true_xy[rows] - mid[obs.detections.camera[rows]]).max() < 0.01
+    single = obs.detections.area_px[~rows]  # the lone marker, same depth
+    assert np.allclose(obs.detections.area_px[rows], 2 * single, rtol=1e-2)
     far = observe(rig, scene, rng=0, noise_px=0.0, merge_blobs=False)
     assert len(far.detections) == 6 and not far.merged.any()
 
