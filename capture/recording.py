@@ -76,7 +76,7 @@ def _compress(img: np.ndarray, codec: int) -> tuple[int, bytes]:
     """(codec used, payload); CODEC_AUTO resolves to sparse or deflate."""
     a = np.ascontiguousarray(img, dtype=img.dtype.newbyteorder("<"))
     if codec == CODEC_RAW:
-        return CODEC_RAW, a.tobytes()
+        return CODEC_RAW, memoryview(a).cast("B")  # no copy: written straight from the image
     if codec == CODEC_ZLIB_RLE:
         return CODEC_ZLIB_RLE, _deflate(a)
     flat = a.reshape(-1).view(np.uint8)
@@ -147,7 +147,7 @@ class RecordedCamera:
 class _Writer:
     """One camera's append-only file, written by its own thread from a bounded queue."""
 
-    _PROBE_EVERY = 32
+    _PROBE_MIN, _PROBE_MAX = 32, 1024
 
     def __init__(self, path: Path, codec: int, qsize: int, fsync_interval_s: float,
                  file_factory: Callable, on_error: Callable, budget_s: float = float("inf")):
@@ -156,6 +156,7 @@ class _Writer:
         self.budget_s = budget_s      # CPU time per frame this writer may spend compressing
         self._cost_s = 0.0            # running mean compression time per frame
         self._n_since_probe = 0
+        self._probe_every = self._PROBE_MIN
         self.fsync_interval_s = fsync_interval_s
         self.q: queue.Queue = queue.Queue(maxsize=qsize)
         self.f = file_factory(path)
@@ -172,14 +173,18 @@ class _Writer:
 
     def _choose_codec(self) -> int:
         """AUTO: compress while it fits the CPU budget and the queue keeps up, else raw
-        (lossless either way), re-probing the compression cost every 32 frames."""
+        (lossless either way), re-probing the compression cost every 32..1024 frames."""
         if self.codec != CODEC_AUTO:
             return self.codec
         behind = self.q.qsize() > self.q.maxsize // 2
-        if behind or self._cost_s > self.budget_s:
+        over = self._cost_s > self.budget_s
+        if behind or over:
             self._n_since_probe += 1
-            if self._n_since_probe < self._PROBE_EVERY or behind:
+            if self._n_since_probe < self._probe_every or behind:
                 return CODEC_RAW
+            # probe again; each probe that is still over budget doubles the interval
+            self._probe_every = min(2 * self._probe_every, self._PROBE_MAX) if over \
+                else self._PROBE_MIN
         self._n_since_probe = 0
         return CODEC_AUTO
 

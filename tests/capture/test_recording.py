@@ -345,3 +345,20 @@ def test_disk_full_during_session_stops_it_cleanly(tmp_path, rig):
         rec.close()
     rows = list(recording_frames(tmp_path / "rec"))
     assert len(rows) == 20
+
+
+def test_auto_codec_stores_raw_when_compression_exceeds_the_cpu_budget(tmp_path):
+    rng = np.random.default_rng(5)
+    imgs = [rng.integers(0, 6, (128, 160)).astype(np.uint8) for _ in range(40)]
+    ratios = {}
+    for rate in (10.0, 1e7):                      # 1e7 Hz: no time to compress anything
+        with Recorder(tmp_path / f"r{rate:g}", _cams(1), rate_hz=rate) as rec:
+            for i, img in enumerate(imgs):
+                rec.write_frame(0, Frame(image=img, camera_id="c0", sequence=i, timestamp_ns=i,
+                                         exposure_us=1.0, gain=0.0,
+                                         timestamp_source=TimestampSource.HOST_DEQUEUE),
+                                frame_index=i)
+        ratios[rate] = rec.stats()["compression_ratio"]
+        back = [imgs_[0] for _, imgs_ in recording_frames(tmp_path / f"r{rate:g}")]
+        assert all(np.array_equal(a, b) for a, b in zip(back, imgs)) and len(back) == 40
+    assert ratios[10.0] > 2.0 and ratios[1e7] < 1.1
