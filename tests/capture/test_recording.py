@@ -349,7 +349,7 @@ def test_disk_full_during_session_stops_it_cleanly(tmp_path, rig):
 
 def test_auto_codec_stores_raw_when_compression_exceeds_the_cpu_budget(tmp_path):
     rng = np.random.default_rng(5)
-    imgs = [rng.integers(0, 6, (128, 160)).astype(np.uint8) for _ in range(40)]
+    imgs = [_sparse_image(rng, 128, 160, np.uint8, 0.1) for _ in range(40)]
     ratios = {}
     for rate in (10.0, 1e7):                      # 1e7 Hz: no time to compress anything
         with Recorder(tmp_path / f"r{rate:g}", _cams(1), rate_hz=rate) as rec:
