@@ -28,7 +28,8 @@ from .frame import Frame, TimestampSource
 from .recording import _HDR, FILE_MAGIC, REC_MAGIC, decode_payload
 from .session import FrameSet
 
-__all__ = ["RecordingMetadata", "RecordedFrame", "FrameFileReader", "load_metadata",
+__all__ = ["RecordingMetadata", "RecordedFrame", "FrameFileReader", "is_recording",
+           "load_metadata",
            "recording_frames", "read_recording", "read_recording_detections", "ReplayCamera"]
 
 _SOURCES = list(TimestampSource)
@@ -64,6 +65,12 @@ class RecordedFrame:
     pulse_index: int
     epoch: int
     set_host_ns: float
+
+
+def is_recording(path) -> bool:
+    """True when ``path`` is a recording folder (CLIs accept folders or other inputs)."""
+    p = Path(path)
+    return p.is_dir() and (p / "metadata.json").is_file()
 
 
 def load_metadata(path) -> RecordingMetadata:

@@ -130,7 +130,9 @@ class SimCamera:
         self.disappear_after_frames: int | None = None
         self.frames_exposed = 0
         self.frames_dropped = 0
-        self.truth: dict[int, tuple[int, float]] = {}  # sequence -> (pulse index, host ns)
+        # ground truth of the most recent frames: sequence -> (pulse index, pulse host ns)
+        self.truth: dict[int, tuple[int, float]] = {}
+        self.truth_capacity = 100_000
 
     # -- Camera protocol ------------------------------------------------------------------
     @property
@@ -282,6 +284,8 @@ class SimCamera:
                           timestamp_ns=int(round(ts)), timestamp_source=self.timestamp_source,
                           exposure_us=s.exposure_us, gain=s.gain)
             self.truth[seq] = (index, pulse_ns)
+            if len(self.truth) > self.truth_capacity:
+                del self.truth[next(iter(self.truth))]
             if self.drop_probability and self.rng.random() < self.drop_probability:
                 self.frames_dropped += 1
                 continue

@@ -19,6 +19,7 @@ import select
 import threading
 import time
 import tty
+from collections import deque
 from typing import Callable
 
 import numpy as np
@@ -84,7 +85,7 @@ class SimSyncBox:
         self.split_writes = False      # deliver frames in random small pieces
         self.pulses_emitted = 0
         self.dropped_bytes = 0
-        self.commands: list[MsgType] = []
+        self.commands: deque[MsgType] = deque(maxlen=1000)  # most recent commands heard
         self._outq: list[tuple[int, bytes]] = []  # (due host ns, bytes)
         self._thread = threading.Thread(target=self._loop, name="sim-syncbox", daemon=True)
         self._send_now(encode_message(Message.make(MsgType.BOOT, reason=0,

@@ -18,7 +18,8 @@ from capture.errors import CameraDisconnected, DiskFullError, SyncBoxDisconnecte
 from capture.frame import Frame, TimestampSource
 from capture.recording import (_HDR, CODEC_AUTO, CODEC_RAW, CODEC_SPARSE, CODEC_ZLIB_RLE,
                                Recorder, RecordedCamera, decode_payload, encode_record)
-from capture.replay import (FrameFileReader, ReplayCamera, load_metadata, read_recording,
+from capture.replay import (FrameFileReader, ReplayCamera, is_recording, load_metadata,
+                            read_recording,
                             read_recording_detections, recording_frames)
 from capture.session import CaptureSession
 from capture.syncbox import SyncBox, SyncConfig
@@ -57,6 +58,7 @@ def test_round_trip_bit_exact(tmp_path, codec, dtype):
                     rec.write_frame(c, _frame(i, c, dtype=dtype), frame_index=i,
                                     pulse_index=100 + i, set_host_ns=1e12 + i * 1e7)
     meta = load_metadata(tmp_path / "rec")
+    assert is_recording(tmp_path / "rec") and not is_recording(tmp_path)
     assert meta.complete and meta.camera_ids == ("c0", "c1", "c2")
     assert meta.calibration == "calib.toml" and meta.sync == {"rate_hz": 100}
     assert meta.settings[0].rate_hz == 100 and meta.raw["frames_per_camera"] == [20, 19, 20]
