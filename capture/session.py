@@ -131,7 +131,10 @@ class CaptureSession:
         sync: host sync box driver (configured; the session starts and stops it) or None.
         rate_hz: pulse rate; taken from ``sync.config`` when a box is given.
         queue_size: per-camera queue length (frames) before back-pressure.
-        max_wait_s: how long after its pulse a frame set waits for missing cameras.
+        max_wait_s: how long after its pulse a frame set waits for missing cameras (at
+            least; with ``adaptive_wait`` the wait grows to 1.5x the slowest recent frame
+            arrival, up to ``max_wait_cap_s``, so an overloaded host delays sets instead of
+            losing frames as late).
         offsets_ns: per camera id, frame timestamp minus pulse time; learnt when absent for
             end-of-frame / dequeue timestamps (assumes it is below one period).
         on_frame_set: called from the matcher thread with each set (e.g. a recorder);
@@ -141,7 +144,8 @@ class CaptureSession:
 
     def __init__(self, cameras: Sequence[Camera], sync: SyncBox | None = None, *,
                  rate_hz: float | None = None, queue_size: int = 8,
-                 max_wait_s: float | None = None, offsets_ns: dict | None = None,
+                 max_wait_s: float | None = None, adaptive_wait: bool = True,
+                 max_wait_cap_s: float = 2.0, offsets_ns: dict | None = None,
                  on_frame_set: Callable[[FrameSet], None] | None = None,
                  on_status: Callable[[str], None] | None = None,
                  status_interval_s: float = 0.5):
@@ -159,6 +163,9 @@ class CaptureSession:
         self.period_ns = 1e9 / self.rate_hz
         self.max_wait_ns = (max_wait_s if max_wait_s is not None
                             else 3.0 / self.rate_hz + 0.1) * 1e9
+        self.adaptive_wait = bool(adaptive_wait)
+        self.max_wait_cap_ns = max(max_wait_cap_s * 1e9, self.max_wait_ns)
+        self._arrival_lag: deque[float] = deque(maxlen=256)  # frame arrival - pulse time
         offsets_ns = offsets_ns or {}
         self._cams = [_Cam(c, queue_size, offsets_ns.get(c.camera_id)) for c in cameras]
         self.camera_ids = tuple(ids)
@@ -193,13 +200,25 @@ class CaptureSession:
         self._matcher.start()
 
     def stop(self) -> SessionStats:
-        """Stop everything, flush pending sets; re-raises a fatal sync fault."""
+        """Stop the pulses, let frames in flight complete their sets (up to the current
+        wait), then stop everything; re-raises a fatal sync fault."""
+        if not self._stop.is_set():
+            if self.sync is not None:
+                try:
+                    self.sync.stop()
+                except CaptureError:
+                    pass
+            else:
+                for c in self._cams:
+                    try:
+                        c.cam.stop()
+                    except CaptureError:
+                        pass
+            deadline = time.monotonic_ns() + self._current_wait_ns() + 20e6
+            while (time.monotonic_ns() < deadline and not self._stop.is_set()
+                   and (self._order or any(c.held or not c.q.empty() for c in self._cams))):
+                time.sleep(0.005)
         self._stop.set()
-        if self.sync is not None and self.sync.error is None:
-            try:
-                self.sync.stop()
-            except CaptureError:
-                pass
         if self._matcher is not None:
             self._matcher.join(timeout=5.0)
         for c in self._cams:
@@ -395,6 +414,7 @@ class CaptureSession:
                     c.unmatched += 1
                     return True
                 return False
+            self._arrival_lag.append(time.monotonic_ns() - slot.host_ns)
             if slot.emitted:
                 c.late += 1
                 return True
@@ -422,13 +442,20 @@ class CaptureSession:
         if c.held:
             c.held = [f for f in c.held if not self._place(i, c, f)]
 
+    def _current_wait_ns(self) -> float:
+        wait = self.max_wait_ns
+        if self.adaptive_wait and self._arrival_lag:
+            wait = min(max(wait, 1.5 * max(self._arrival_lag)), self.max_wait_cap_ns)
+        return wait
+
     def _emit_ready(self, flush: bool = False) -> None:
         now = time.monotonic_ns()
         live = [j for j, c in enumerate(self._cams) if c.connected]
+        wait = self._current_wait_ns()
         while self._order:
             s = self._slots[self._order[0]]
             complete = all(s.frames[j] is not None for j in live)
-            if not (complete or flush or now - s.host_ns > self.max_wait_ns):
+            if not (complete or flush or now - s.host_ns > wait):
                 break
             self._order.pop(0)
             s.emitted = True

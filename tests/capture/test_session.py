@@ -101,9 +101,26 @@ def test_late_frames_are_counted(rig):
     cams[0].late_probability = 0.1
     cams[0].late_ms = 100.0
     sets = []
-    st = CaptureSession(cams, box, on_frame_set=sets.append, max_wait_s=0.03).run(DURATION_S)
+    st = CaptureSession(cams, box, on_frame_set=sets.append, max_wait_s=0.03,
+                        adaptive_wait=False).run(DURATION_S)
     _check_matching(sets, cams)
     assert st.cameras[0].late > 0 and st.cameras[1].late == 0
+
+
+def test_adaptive_wait_keeps_frames_of_a_slow_host(rig):
+    sim, box, cams = rig
+    latency_s, max_wait_s = 0.08, 0.03
+    for c in cams:
+        c.latency_ns = int(latency_s * 1e9)   # an overloaded host: frames 80 ms late
+    sets = []
+    st = CaptureSession(cams, box, on_frame_set=sets.append,
+                        max_wait_s=max_wait_s).run(DURATION_S)
+    _check_matching(sets, cams)
+    # only the pulses that expired before the first frame arrived lose their frames
+    bound = int(np.ceil((latency_s - max_wait_s) * RATE_HZ)) + 1
+    assert max(c.late for c in st.cameras) <= bound
+    assert st.complete_sets >= len(sets) - bound
+    assert st.complete_sets >= MIN_SETS_FRACTION * RATE_HZ * DURATION_S - 2 * bound
 
 
 def test_back_pressure_from_a_slow_consumer_shows_as_drops(rig):
