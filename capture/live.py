@@ -49,6 +49,6 @@ def record_live(cameras: Sequence[Camera], sync: SyncBox | None, out, *, duratio
     try:
         stats = session.run(duration_s)
     finally:
-        rec._shutdown()  # always leaves a readable folder; errors re-raised below
+        rec.finish()  # always leaves a readable folder; errors re-raised below
     rec.close()
     return LiveResult(session=stats, recording=rec.stats(), folder=Path(out))

@@ -372,6 +372,10 @@ class Recorder:
                 "compression_ratio": raw / out if out else float("nan"),
                 "queued": sum(w.q.qsize() for w in self._writers)}
 
+    def finish(self) -> None:
+        """Close (flush, fsync, finalise metadata) without raising; see ``error``."""
+        self._shutdown()
+
     def _shutdown(self):
         if self._closed:
             return
