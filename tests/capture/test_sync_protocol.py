@@ -80,3 +80,17 @@ def test_splitter_partial_frames_and_garbage():
         pos += n
     assert [m.index for m in got] == list(range(50))
     assert sp.overruns == 1  # the 1000-byte run was discarded, not buffered
+
+
+@given(st.lists(st.tuples(st.integers(0, 2**32 - 1), st.integers(0, 2**64 - 1)), max_size=30),
+       st.lists(st.integers(1, 40), min_size=1, max_size=20))
+@settings(max_examples=100, deadline=None)
+def test_property_any_chunking_yields_the_messages(pulses, cuts):
+    wire = b"".join(encode_message(Message.make(MsgType.PULSE, index=i, ticks=t))
+                    for i, t in pulses)
+    sp, got, pos, k = FrameSplitter(), [], 0, 0
+    while pos < len(wire):
+        n = cuts[k % len(cuts)]
+        got += [decode_frame(f) for f in sp.feed(wire[pos:pos + n])]
+        pos, k = pos + n, k + 1
+    assert [(m.index, m.ticks) for m in got] == pulses

@@ -147,3 +147,16 @@ def test_real_v4l2_device_streams():
     assert len(frames) >= 20 and frames[0].image.shape == (s.height, s.width)
     assert all(b.sequence > a.sequence for a, b in zip(frames, frames[1:]))
     assert all(b.timestamp_ns > a.timestamp_ns for a, b in zip(frames, frames[1:]))
+
+
+def test_buffer_with_error_flag_is_skipped_and_counts_as_a_drop():
+    k = FakeKernel()
+    cam = _camera(k)
+    cam.configure(CameraSettings(width=320, height=240, pixel_format=PixelFormat.GREY))
+    cam.start()
+    payload = bytes(k.get_raw_format(k.rfd, None).fmt.pix.bytesperline * 240)
+    k.expose(payload, 10**9, error=True)
+    k.expose(payload, 2 * 10**9)
+    assert cam.read(1.0) is None                     # corrupted buffer, requeued
+    f = cam.read(1.0)
+    assert f.sequence == 1 and len(k.free) == cam.n_buffers
