@@ -130,6 +130,7 @@ class SimCamera:
         self.disappear_after_frames: int | None = None
         self.frames_exposed = 0
         self.frames_dropped = 0
+        self.frames_delayed = 0
         # ground truth of the most recent frames: sequence -> (pulse index, pulse host ns)
         self.truth: dict[int, tuple[int, float]] = {}
         self.truth_capacity = 100_000
@@ -292,6 +293,7 @@ class SimCamera:
             due = pulse_ns + self.latency_ns
             if self.late_probability and self.rng.random() < self.late_probability:
                 due += self.late_ms * 1e6
+                self.frames_delayed += 1
             wait = (due - time.monotonic_ns()) * 1e-9
             if wait > 0 and self._stop.wait(wait):
                 return

@@ -44,13 +44,15 @@ def test_frame_sets_match_pulses(rig):
     st = CaptureSession(cams, box, on_frame_set=sets.append, on_status=lines.append,
                         status_interval_s=0.2).run(DURATION_S)
     assert len(sets) >= MIN_SETS_FRACTION * RATE_HZ * DURATION_S
-    assert st.complete_sets == len(sets)
     _check_matching(sets, cams)
     assert [s.index for s in sets] == list(range(len(sets)))
     assert np.all(np.diff([s.host_ns for s in sets]) > 0)
-    for c in st.cameras:
-        assert c.drops == 0 and c.late == 0 and c.unmatched == 0 and c.connected
-        assert c.latency_ms > 0
+    for i, c in enumerate(st.cameras):
+        assert c.unmatched == 0 and c.connected and c.latency_ms > 0
+        # the statistics agree with the sets (drops/late only when the host is starved)
+        assert c.missing == sum(fs.frames[i] is None for fs in sets)
+        assert c.missing <= c.drops + c.late + cams[i].frames_dropped
+    assert st.complete_sets == sum(fs.complete for fs in sets)
     assert lines and "cam_1" in lines[-1] and "sync" in lines[-1]
 
 
@@ -104,7 +106,11 @@ def test_late_frames_are_counted(rig):
     st = CaptureSession(cams, box, on_frame_set=sets.append, max_wait_s=0.03,
                         adaptive_wait=False).run(DURATION_S)
     _check_matching(sets, cams)
-    assert st.cameras[0].late > 0 and st.cameras[1].late == 0
+    # every frame the camera delayed past the wait arrives after its set left, except
+    # those still in flight at stop (expected rate * late_ms * p = 1; allow 3); the other
+    # cameras are late only if the host starves
+    assert st.cameras[0].late >= cams[0].frames_delayed - 3 > 0
+    assert st.cameras[0].late > st.cameras[1].late
 
 
 def test_adaptive_wait_keeps_frames_of_a_slow_host(rig):
@@ -119,7 +125,8 @@ def test_adaptive_wait_keeps_frames_of_a_slow_host(rig):
     # only the pulses that expired before the first frame arrived lose their frames
     bound = int(np.ceil((latency_s - max_wait_s) * RATE_HZ)) + 1
     assert max(c.late for c in st.cameras) <= bound
-    assert st.complete_sets >= len(sets) - bound
+    # other incomplete sets are explained by drops (a starved host overflows the buffers)
+    assert st.complete_sets >= len(sets) - bound - sum(c.drops for c in st.cameras)
     assert st.complete_sets >= MIN_SETS_FRACTION * RATE_HZ * DURATION_S - 2 * bound
 
 
@@ -131,7 +138,7 @@ def test_back_pressure_from_a_slow_consumer_shows_as_drops(rig):
 
     st = CaptureSession(cams, box, on_frame_set=slow, queue_size=2).run(DURATION_S)
     assert all(c.drops > 0 for c in st.cameras)
-    assert st.frame_sets <= 0.6 * RATE_HZ * DURATION_S + 5
+    assert st.frame_sets <= st.elapsed_s / 0.02 + 1      # the consumer's pace
 
 
 def test_sync_box_disappearing_stops_with_clear_error(rig):
