@@ -17,6 +17,7 @@ import os
 import queue
 import threading
 import time
+from collections import deque
 from typing import Callable
 
 import numpy as np
@@ -131,6 +132,7 @@ class SimCamera:
         self.frames_exposed = 0
         self.frames_dropped = 0
         self.frames_delayed = 0
+        self.dropped_sequences: deque[int] = deque(maxlen=100_000)  # truth of the gaps
         # ground truth of the most recent frames: sequence -> (pulse index, pulse host ns)
         self.truth: dict[int, tuple[int, float]] = {}
         self.truth_capacity = 100_000
@@ -233,6 +235,10 @@ class SimCamera:
         g = min(max(float(g), _GAIN_RANGE[0]), _GAIN_RANGE[1])
         return round(g / _GAIN_STEP) * _GAIN_STEP
 
+    def _dropped(self, seq: int) -> None:
+        self.frames_dropped += 1
+        self.dropped_sequences.append(seq)
+
     def _check_alive(self):
         if self._gone:
             raise CameraDisconnected(self.device, "camera disappeared (simulated unplug)")
@@ -242,7 +248,7 @@ class SimCamera:
             self._triggers.put_nowait((ev.index, ev.host_ns))
         except queue.Full:
             self._seq += 1  # sensor exposed, driver had nowhere to put it
-            self.frames_dropped += 1
+            self._dropped(self._seq)
 
     def _free_run_loop(self) -> None:
         period = 1e9 / self._settings.rate_hz
@@ -257,7 +263,7 @@ class SimCamera:
                 self._triggers.put_nowait((k, float(due)))
             except queue.Full:
                 self._seq += 1
-                self.frames_dropped += 1
+                self._dropped(self._seq)
             k += 1
 
     def _work(self) -> None:
@@ -288,7 +294,7 @@ class SimCamera:
             if len(self.truth) > self.truth_capacity:
                 del self.truth[next(iter(self.truth))]
             if self.drop_probability and self.rng.random() < self.drop_probability:
-                self.frames_dropped += 1
+                self._dropped(seq)
                 continue
             due = pulse_ns + self.latency_ns
             if self.late_probability and self.rng.random() < self.late_probability:
@@ -299,7 +305,7 @@ class SimCamera:
                 return
             with self._plock:
                 if self._pending >= self._n_buffers:
-                    self.frames_dropped += 1  # all buffers full: the driver drops
+                    self._dropped(seq)  # all buffers full: the driver drops
                     continue
                 self._pending += 1
             self._out.put(frame)
