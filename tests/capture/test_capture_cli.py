@@ -57,3 +57,11 @@ def test_record_live_goes_on_when_a_camera_is_lost(tmp_path):
     assert np.isfinite(res.recording["compression_ratio"])
     with pytest.raises(ValueError, match="duration"):
         record_live(cams, None, tmp_path / "r2", duration_s=0, rate_hz=10)
+
+
+def test_capture_cli_real_form_reports_a_missing_device(tmp_path, capsys):
+    rc = main(["capture", "--camera", str(tmp_path / "video99"), "--sync",
+               str(tmp_path / "ttyACM9"), "--out", str(tmp_path / "s")])
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert "CameraDisconnected" in err and "video99" in err
