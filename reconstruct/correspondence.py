@@ -1,0 +1,283 @@
+"""Spatial correspondence: which undistorted blobs of C views are images of the same marker.
+
+Per frame:
+
+1. **Epipolar gating.** For every camera pair (i, j) the essential matrix (normalised
+   coordinates) gives the epipolar line of each blob of i in j; blob pairs closer than
+   ``gate_px`` to each other's lines (in both images) are seeds.
+2. **Candidate enumeration.** Each seed is triangulated and projected into the other cameras;
+   the nearest blob within ``gate_px`` of the projection joins the candidate. Identical blob
+   sets found from different seeds are merged.
+3. **Minimum reprojection error.** Every candidate is triangulated (DLT + refinement, one bad
+   ray rejected: ``reconstruct.triangulation``); candidates with a ray error above
+   ``max_error_px`` are dropped.
+4. **Greedy acceptance.** Candidates are taken best first (most cameras, then smallest RMS
+   error); a candidate is accepted only if none of its blobs is used already, so each blob is
+   used at most once. A second round repeats 1-4 on the blobs left over.
+5. **Ghost removal.** A point supported by two cameras only is dropped when its rays meet at
+   less than ``min_angle_deg``, when one of its blobs lies within ``gate_px`` of the projection
+   of a better (>= 3-camera) point (the blob is explained already), or outside ``bounds``.
+
+Conventions: docs/conventions.md [pixels], [frames], [arrays]. Works for any C >= 2.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from reconstruct.triangulation import RigArrays, triangulate_dlt, triangulate_normalized
+from reconstruct.types import PointCloud
+
+__all__ = ["CorrespondenceConfig", "EpipolarGeometry", "epipolar_geometry", "match_frame"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class CorrespondenceConfig:
+    """Parameters of :func:`match_frame` (pixels are undistorted pixels of the camera).
+
+    Attributes:
+        gate_px: epipolar and reprojection gate for joining a blob to a candidate.
+        max_error_px: largest ray error a reconstructed point may keep.
+        bad_ray_px: a ray with a larger error is rejected if >= 2 others remain.
+        min_cameras: fewest cameras a point needs (>= 2).
+        min_angle_deg: smallest ray angle of a 2-camera point.
+        bounds: None or ((xmin, ymin, zmin), (xmax, ymax, zmax)) m; points outside are dropped.
+        rounds: matching rounds (later rounds use the blobs left over).
+    """
+
+    gate_px: float = 1.5
+    max_error_px: float = 1.5
+    bad_ray_px: float = 1.5
+    min_cameras: int = 2
+    min_angle_deg: float = 5.0
+    bounds: tuple | None = None
+    rounds: int = 2
+
+    def __post_init__(self):
+        for name in ("gate_px", "max_error_px", "bad_ray_px"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}={getattr(self, name)}, expected > 0")
+        if self.min_cameras < 2:
+            raise ValueError(f"min_cameras={self.min_cameras}, expected >= 2")
+        if self.rounds < 1:
+            raise ValueError(f"rounds={self.rounds}, expected >= 1")
+        if self.bounds is not None:
+            b = np.asarray(self.bounds, dtype=np.float64)
+            if b.shape != (2, 3) or np.any(b[0] >= b[1]):
+                raise ValueError(f"bounds={self.bounds!r}, expected ((lo x,y,z), (hi x,y,z))")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EpipolarGeometry:
+    """Camera geometry and the essential matrices of all pairs.
+
+    Attributes:
+        geo: stacked rig arrays.
+        pairs: (P, 2) camera index pairs i < j.
+        E: (P, 3, 3) with ``x_j^T E x_i = 0`` for normalised homogeneous ``x``.
+    """
+
+    geo: RigArrays
+    pairs: np.ndarray
+    E: np.ndarray
+
+
+def _skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def epipolar_geometry(geo: RigArrays) -> EpipolarGeometry:
+    C = geo.n_cameras
+    if C < 2:
+        raise ValueError(f"correspondence needs >= 2 cameras, got {C}")
+    pairs = np.array([(i, j) for i in range(C) for j in range(i + 1, C)], dtype=np.int64)
+    E = []
+    for i, j in pairs:
+        R_ji = geo.R[j] @ geo.R[i].T
+        t_ji = geo.t[j] - R_ji @ geo.t[i]
+        E.append(_skew(t_ji) @ R_ji)
+    return EpipolarGeometry(geo=geo, pairs=pairs, E=np.array(E))
+
+
+def _homog(x):
+    return np.concatenate([x, np.ones((len(x), 1))], axis=1)
+
+
+def _seeds(blobs, epi: EpipolarGeometry, gate_px, avail):
+    """Seed blob pairs passing the epipolar gate: arrays (cam_i, blob_i, cam_j, blob_j)."""
+    out = []
+    f = epi.geo.f
+    for p, (i, j) in enumerate(epi.pairs):
+        ai, aj = np.flatnonzero(avail[i]), np.flatnonzero(avail[j])
+        if not ai.size or not aj.size:
+            continue
+        xi, xj = _homog(blobs[i][ai]), _homog(blobs[j][aj])
+        E = epi.E[p]
+        lj = xi @ E.T                      # lines in j: (Ni, 3)
+        li = xj @ E                        # lines in i: (Nj, 3)
+        num = xj @ lj.T                    # (Nj, Ni) = x_j . (E x_i)
+        dj = np.abs(num) / np.hypot(lj[:, 0], lj[:, 1])[None, :] * f[j]
+        di = np.abs(num) / np.hypot(li[:, 0], li[:, 1])[:, None] * f[i]
+        bj, bi = np.nonzero((dj < gate_px) & (di < gate_px))
+        if bi.size:
+            out.append(np.stack([np.full(bi.size, i), ai[bi], np.full(bi.size, j), aj[bj]], 1))
+    return np.concatenate(out) if out else np.zeros((0, 4), np.int64)
+
+
+def _extend(X, seeds, blobs, geo: RigArrays, gate_px, avail):
+    """(K, C) blob index per camera for each seed point: the seed blobs plus the nearest
+    available blob within ``gate_px`` of the projection in every other camera."""
+    K, C = len(X), geo.n_cameras
+    obs = np.full((K, C), -1, np.int64)
+    pc = np.einsum("cij,kj->kci", geo.R, X) + geo.t[None]
+    z = pc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = pc[..., :2] / z[..., None]
+    for c in range(C):
+        idx = np.flatnonzero(avail[c])
+        if not idx.size:
+            continue
+        d = np.linalg.norm(uv[:, c, None, :] - blobs[c][idx][None], axis=2) * geo.f[c]
+        best = np.argmin(d, axis=1)
+        hit = (d[np.arange(K), best] < gate_px) & (z[:, c] > 0)
+        obs[hit, c] = idx[best[hit]]
+    r = np.arange(K)
+    obs[r, seeds[:, 0]] = seeds[:, 1]
+    obs[r, seeds[:, 2]] = seeds[:, 3]
+    return obs
+
+
+def _ray_angle_deg(X, cams, geo: RigArrays):
+    """Largest angle between the rays of each point (N,) from its cameras (N, C) bool."""
+    d = X[:, None, :] - geo.centres[None]
+    d /= np.linalg.norm(d, axis=2, keepdims=True)
+    cos = np.einsum("nai,nbi->nab", d, d)
+    m = cams[:, :, None] & cams[:, None, :]
+    cos = np.where(m, cos, 1.0)
+    return np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1, 1)))
+
+
+def _one_round(blobs, epi: EpipolarGeometry, cfg: CorrespondenceConfig, avail):
+    geo = epi.geo
+    C = geo.n_cameras
+    seeds = _seeds(blobs, epi, cfg.gate_px, avail)
+    if not len(seeds):
+        return []
+    K = len(seeds)
+    xy = np.full((C, K, 2), np.nan)
+    r = np.arange(K)
+    xy[seeds[:, 0], r] = _gather(blobs, seeds[:, 0], seeds[:, 1])
+    xy[seeds[:, 2], r] = _gather(blobs, seeds[:, 2], seeds[:, 3])
+    X = triangulate_dlt(xy, geo)
+    good = np.all(np.isfinite(X), axis=1)
+    if not good.any():
+        return []
+    obs = _extend(X[good], seeds[good], blobs, geo, cfg.gate_px, avail)
+    obs = np.unique(obs, axis=0)
+    obs = obs[(obs >= 0).sum(axis=1) >= cfg.min_cameras]
+    if not len(obs):
+        return []
+    xy = np.full((C, len(obs), 2), np.nan)
+    for c in range(C):
+        m = obs[:, c] >= 0
+        xy[c, m] = blobs[c][obs[m, c]]
+    res = triangulate_normalized(xy, geo, bad_ray_px=cfg.bad_ray_px)
+    used = res.used
+    n_used = used.sum(axis=1)
+    worst = np.nanmax(np.where(used, res.ray_error_px, 0.0), axis=1)
+    keep = res.ok & (n_used >= cfg.min_cameras) & (worst <= cfg.max_error_px)
+    idx = np.flatnonzero(keep)
+    order = idx[np.lexsort((res.residual_px[idx], -n_used[idx]))]
+    taken = [np.zeros(len(b), bool) for b in blobs]
+    accepted = []
+    for k in order:
+        cams = np.flatnonzero(used[k])
+        bl = obs[k, cams]
+        if any(taken[c][b] for c, b in zip(cams, bl)):
+            continue
+        for c, b in zip(cams, bl):
+            taken[c][b] = True
+            avail[c][b] = False
+        o = np.full(C, -1, np.int64)
+        o[cams] = bl
+        accepted.append((res.points[k], res.residual_px[k], res.residual_mm[k], o))
+    return accepted
+
+
+def _gather(blobs, cams, idx):
+    out = np.empty((len(cams), 2))
+    for c in np.unique(cams):
+        m = cams == c
+        out[m] = blobs[c][idx[m]]
+    return out
+
+
+def match_frame(blobs_norm, epi: EpipolarGeometry, cfg: CorrespondenceConfig | None = None,
+                frame: int = 0) -> PointCloud:
+    """Reconstruct the markers of one frame from per-camera undistorted blobs.
+
+    Args:
+        blobs_norm: C arrays ``(N_c, 2)`` of normalised image coordinates
+            (``Camera.pixel_to_normalized`` of the blob centroids), in rig camera order.
+        epi: :func:`epipolar_geometry` of the rig.
+        cfg: parameters.
+        frame: frame index stored in the cloud.
+    Returns:
+        a :class:`PointCloud`; ``obs`` indexes ``blobs_norm[c]``.
+    """
+    cfg = cfg or CorrespondenceConfig()
+    geo = epi.geo
+    C = geo.n_cameras
+    if len(blobs_norm) != C:
+        raise ValueError(f"{len(blobs_norm)} blob arrays for a {C}-camera rig")
+    blobs = []
+    for c, b in enumerate(blobs_norm):
+        b = np.asarray(b, dtype=np.float64)
+        if b.size == 0:
+            b = b.reshape(0, 2)
+        if b.ndim != 2 or b.shape[1] != 2:
+            raise ValueError(f"blobs_norm[{c}].shape={b.shape}, expected (N, 2)")
+        blobs.append(b)
+    avail = [np.all(np.isfinite(b), axis=1) for b in blobs]
+    acc = []
+    for _ in range(cfg.rounds):
+        new = _one_round(blobs, epi, cfg, avail)
+        if not new:
+            break
+        acc.extend(new)
+    if not acc:
+        return PointCloud.empty(frame, C)
+    X = np.array([a[0] for a in acc])
+    rp = np.array([a[1] for a in acc])
+    rm = np.array([a[2] for a in acc])
+    obs = np.array([a[3] for a in acc])
+    cams = obs >= 0
+    keep = _not_ghost(X, cams, obs, blobs, geo, cfg)
+    return PointCloud(frame=frame, points=X[keep], residual_px=rp[keep], residual_mm=rm[keep],
+                      cameras=cams[keep], obs=obs[keep])
+
+
+def _not_ghost(X, cams, obs, blobs, geo: RigArrays, cfg: CorrespondenceConfig):
+    n = cams.sum(axis=1)
+    keep = np.ones(len(X), bool)
+    if cfg.bounds is not None:
+        lo, hi = np.asarray(cfg.bounds, dtype=np.float64)
+        keep &= np.all((X >= lo) & (X <= hi), axis=1)
+    two = np.flatnonzero(n == 2)
+    if not two.size:
+        return keep
+    keep[two] &= _ray_angle_deg(X[two], cams[two], geo) >= cfg.min_angle_deg
+    strong = np.flatnonzero(n >= 3)
+    if strong.size:
+        pc = np.einsum("cij,kj->kci", geo.R, X[strong]) + geo.t[None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = pc[..., :2] / pc[..., 2:3]                           # (S, C, 2)
+        for k in two:
+            for c in np.flatnonzero(cams[k]):
+                b = blobs[c][obs[k, c]]
+                d = np.linalg.norm(uv[:, c] - b, axis=1) * geo.f[c]
+                if np.any((d < cfg.gate_px) & (pc[:, c, 2] > 0)):
+                    keep[k] = False
+                    break
+    return keep
