@@ -16,6 +16,7 @@ Conventions: docs/conventions.md [time], [camera-order], [errors].
 """
 from __future__ import annotations
 
+import bisect
 import queue
 import statistics
 import threading
@@ -176,6 +177,8 @@ class CaptureSession:
         self._stop = threading.Event()
         self._slots: dict = {}
         self._order: list = []          # slot keys sorted by host time, not yet emitted
+        self._order_t: list[float] = []  # their host times (same order, for bisect)
+        self._recent: deque = deque(maxlen=4096)  # (host ns, key) of emitted slots, in order
         self._emitted_keys: deque = deque(maxlen=4096)
         self._emitted_set: set = set()
         self._n_sets = self._n_complete = 0
@@ -355,9 +358,9 @@ class CaptureSession:
         if s is None:
             s = _Slot(key, host_ns, len(self._cams))
             self._slots[key] = s
-            self._order.append(key)
-            if len(self._order) > 1 and self._slots[self._order[-2]].host_ns > host_ns:
-                self._order.sort(key=lambda k: self._slots[k].host_ns)
+            j = bisect.bisect_right(self._order_t, host_ns)
+            self._order.insert(j, key)
+            self._order_t.insert(j, host_ns)
         return s
 
     def _frame_time(self, c: _Cam, f: Frame) -> float | None:
@@ -378,11 +381,10 @@ class CaptureSession:
 
     def _learn_offset(self, c: _Cam, f: Frame) -> bool:
         """For end-of-frame/dequeue stamps: offset = median(ts - latest pulse before ts)."""
-        before = [self._slots[k].host_ns for k in self._order
-                  if self._slots[k].host_ns <= f.timestamp_ns]
-        if not before:
+        j = bisect.bisect_right(self._order_t, f.timestamp_ns)
+        if j == 0:
             return False
-        c.offset_samples.append(f.timestamp_ns - max(before))
+        c.offset_samples.append(f.timestamp_ns - self._order_t[j - 1])
         if len(c.offset_samples) >= 8:
             c.offset_ns = float(np.median(c.offset_samples))
         return False
@@ -425,17 +427,18 @@ class CaptureSession:
         return True
 
     def _nearest(self, t: float) -> _Slot | None:
-        best, best_d = None, self.period_ns / 2
-        for key in self._order:
-            s = self._slots[key]
-            d = abs(s.host_ns - t)
-            if d <= best_d:
-                best, best_d = s, d
-        if best is None:
-            for key in reversed(self._emitted_keys):
-                s = self._slots.get(key)
-                if s is not None and abs(s.host_ns - t) <= self.period_ns / 2:
-                    return s
+        half = self.period_ns / 2
+        j = bisect.bisect_left(self._order_t, t)
+        best, best_d = None, half
+        for k in (j - 1, j):
+            if 0 <= k < len(self._order_t) and abs(self._order_t[k] - t) <= best_d:
+                best, best_d = self._slots[self._order[k]], abs(self._order_t[k] - t)
+        if best is None:  # its set may have left already: then the frame is late
+            for host_ns, key in reversed(self._recent):
+                if host_ns < t - half:
+                    break
+                if abs(host_ns - t) <= half and key in self._slots:
+                    return self._slots[key]
         return best
 
     def _retry_held(self, i: int, c: _Cam) -> None:
@@ -458,7 +461,9 @@ class CaptureSession:
             if not (complete or flush or now - s.host_ns > wait):
                 break
             self._order.pop(0)
+            self._order_t.pop(0)
             s.emitted = True
+            self._recent.append((s.host_ns, s.key))
             self._emitted_keys.append(s.key)
             self._emitted_set.add(s.key)
             if len(self._emitted_keys) == self._emitted_keys.maxlen:
