@@ -1,0 +1,160 @@
+"""Temporal correspondence: unlabelled 3D point clouds -> marker trajectories.
+
+Each live track predicts its next position (constant velocity, or constant acceleration once
+it has three consecutive samples); the points of the next frame are assigned to the
+predictions by an optimal assignment (``scipy.optimize.linear_sum_assignment``) restricted
+to a gate that widens with the time since the track was last seen. An unmatched track leaves
+a gap (NaN) and keeps predicting; after more than ``max_gap_frames`` missing frames it ends,
+so a marker reappearing later gets a new id: a trajectory is broken rather than swapped.
+Unmatched points start new tracks.
+Conventions: docs/conventions.md [arrays] ((T, M, 3), NaN gaps), [units], [time].
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from reconstruct.types import MarkerCloudSequence, Trajectories
+
+__all__ = ["TrackingConfig", "track"]
+
+_MODELS = ("velocity", "acceleration")
+_BIG = 1e9
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackingConfig:
+    """Parameters of :func:`track`.
+
+    Attributes:
+        model: "velocity" (constant velocity) or "acceleration" (constant acceleration when a
+            track has >= 3 consecutive samples, else constant velocity).
+        base_gate_m: gate around a prediction, m (noise + model error at one frame).
+        max_accel_mps2: acceleration the gate allows for, m/s^2 (gate grows 0.5 a (k dt)^2
+            after k frames).
+        max_speed_mps: speed the gate allows for a track with no velocity yet, m/s.
+        max_gap_frames: a track missing for more frames ends (the marker gets a new id).
+        min_length: tracks with fewer samples are dropped (1 keeps every track).
+    """
+
+    model: str = "velocity"
+    base_gate_m: float = 0.01
+    max_accel_mps2: float = 100.0
+    max_speed_mps: float = 4.0
+    max_gap_frames: int = 5
+    min_length: int = 1
+
+    def __post_init__(self):
+        if self.model not in _MODELS:
+            raise ValueError(f"model={self.model!r}, expected one of {_MODELS}")
+        for name in ("base_gate_m", "max_accel_mps2", "max_speed_mps"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}={getattr(self, name)}, expected > 0")
+        if self.max_gap_frames < 0:
+            raise ValueError(f"max_gap_frames={self.max_gap_frames}, expected >= 0")
+        if self.min_length < 1:
+            raise ValueError(f"min_length={self.min_length}, expected >= 1")
+
+
+def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
+          rate_hz: float | None = None) -> Trajectories:
+    """Link the point clouds of consecutive frames into trajectories ``T1, T2, ...``.
+
+    Frames missing from ``clouds`` (a jump in frame index) count as frames with no points.
+    """
+    cfg = cfg or TrackingConfig()
+    rate = rate_hz or clouds.rate_hz
+    if not rate or rate <= 0:
+        raise ValueError(f"rate_hz={rate!r}: the frame rate is needed for tracking gates")
+    dt = 1.0 / rate
+    if len(clouds) == 0:
+        return Trajectories(positions=np.zeros((0, 0, 3)), rate_hz=rate, labels=())
+    frames = clouds.frames
+    f0 = int(frames[0])
+    T = int(frames[-1]) - f0 + 1
+    # live track state
+    ids = np.zeros(0, np.int64)
+    last = np.zeros((0, 3))        # last observed position
+    vel = np.zeros((0, 3))         # per frame
+    acc = np.zeros((0, 3))         # per frame^2
+    n_consec = np.zeros(0, np.int64)
+    missed = np.zeros(0, np.int64)  # frames since last seen (0 = seen in the previous frame)
+    rec_t, rec_id, rec_p, rec_r = [], [], [], []
+    next_id = 0
+    by_frame = {c.frame: c for c in clouds}
+    for t in range(T):
+        cl = by_frame.get(f0 + t)
+        pts = cl.points if cl is not None else np.zeros((0, 3))
+        res = cl.residual_mm if cl is not None else np.zeros(0)
+        k = (missed + 1).astype(np.float64)
+        pred = last.copy()
+        hv = n_consec >= 2
+        pred[hv] += vel[hv] * k[hv, None]
+        if cfg.model == "acceleration":
+            ha = n_consec >= 3
+            pred[ha] += 0.5 * acc[ha] * (k[ha] ** 2)[:, None]
+        gate = np.where(hv, cfg.base_gate_m + 0.5 * cfg.max_accel_mps2 * (k * dt) ** 2,
+                        cfg.base_gate_m + cfg.max_speed_mps * k * dt)
+        matched_tr = np.zeros(len(ids), bool)
+        matched_pt = np.zeros(len(pts), bool)
+        if len(ids) and len(pts):
+            d = np.linalg.norm(pred[:, None, :] - pts[None, :, :], axis=2)
+            cost = np.where(d < gate[:, None], d, _BIG)
+            r, c = linear_sum_assignment(cost)
+            ok = cost[r, c] < _BIG
+            r, c = r[ok], c[ok]
+            newp = pts[c]
+            consec = missed[r] == 0
+            v_new = (newp - last[r]) / (missed[r] + 1)[:, None]
+            a_new = np.where((consec & (n_consec[r] >= 2))[:, None], v_new - vel[r], 0.0)
+            acc[r] = a_new
+            vel[r] = v_new
+            n_consec[r] = np.where(consec, n_consec[r] + 1, 2)
+            last[r] = newp
+            missed[r] = 0
+            matched_tr[r] = True
+            matched_pt[c] = True
+            rec_t.append(np.full(len(r), t))
+            rec_id.append(ids[r])
+            rec_p.append(newp)
+            rec_r.append(res[c])
+        missed[~matched_tr] += 1
+        alive = missed <= cfg.max_gap_frames
+        ids, last, vel, acc, n_consec, missed = (a[alive] for a in
+                                                 (ids, last, vel, acc, n_consec, missed))
+        new = np.flatnonzero(~matched_pt)
+        if new.size:
+            nid = np.arange(next_id, next_id + new.size)
+            next_id += new.size
+            ids = np.concatenate([ids, nid])
+            last = np.concatenate([last, pts[new]])
+            vel = np.concatenate([vel, np.zeros((new.size, 3))])
+            acc = np.concatenate([acc, np.zeros((new.size, 3))])
+            n_consec = np.concatenate([n_consec, np.ones(new.size, np.int64)])
+            missed = np.concatenate([missed, np.zeros(new.size, np.int64)])
+            rec_t.append(np.full(new.size, t))
+            rec_id.append(nid)
+            rec_p.append(pts[new])
+            rec_r.append(res[new])
+    if not rec_t:
+        return Trajectories(positions=np.zeros((T, 0, 3)), rate_hz=rate, labels=(),
+                            first_frame=f0)
+    tt = np.concatenate(rec_t)
+    ii = np.concatenate(rec_id)
+    pp = np.concatenate(rec_p)
+    rr = np.concatenate(rec_r)
+    length = np.bincount(ii, minlength=next_id)
+    keep_ids = np.flatnonzero(length >= cfg.min_length)
+    remap = np.full(next_id, -1)
+    remap[keep_ids] = np.arange(keep_ids.size)
+    M = keep_ids.size
+    pos = np.full((T, M, 3), np.nan)
+    resid = np.full((T, M), np.nan)
+    m = remap[ii]
+    ok = m >= 0
+    pos[tt[ok], m[ok]] = pp[ok]
+    resid[tt[ok], m[ok]] = rr[ok]
+    return Trajectories(positions=pos, rate_hz=rate, labels=tuple(f"T{i + 1}" for i in range(M)),
+                        first_frame=f0, residual_mm=resid)
