@@ -208,6 +208,7 @@ class ReplayCamera:
         self._rfd, self._wfd = os.pipe()
         os.write(self._wfd, b"\x01")  # readable while frames remain
         self._t0_wall = self._t0_rec = None
+        self._next: RecordedFrame | None = None
         self._done = False
 
     @property
@@ -231,7 +232,8 @@ class ReplayCamera:
             return None
         if self._done:
             raise CameraDisconnected(f"replay:{self.camera_id}", "end of recording")
-        rf = next(self._it, None)
+        rf, self._next = (self._next, None) if self._next is not None else \
+            (next(self._it, None), None)
         if rf is None:
             self._done = True
             try:
@@ -243,9 +245,13 @@ class ReplayCamera:
             now = time.monotonic_ns()
             if self._t0_wall is None:
                 self._t0_wall, self._t0_rec = now, rf.frame.timestamp_ns
-            wait = (rf.frame.timestamp_ns - self._t0_rec) - (now - self._t0_wall)
+            wait = ((rf.frame.timestamp_ns - self._t0_rec) - (now - self._t0_wall)) * 1e-9
+            if wait > timeout:
+                time.sleep(max(0.0, timeout))
+                self._next = rf  # not due yet: keep it for the next call
+                return None
             if wait > 0:
-                time.sleep(wait * 1e-9)
+                time.sleep(wait)
         return rf.frame
 
     def fileno(self) -> int:

@@ -272,6 +272,20 @@ def test_replay_camera_follows_the_protocol(tmp_path):
     cam.close()
 
 
+def test_realtime_replay_paces_frames_and_honours_timeouts(tmp_path):
+    with Recorder(tmp_path / "rec", _cams(1), rate_hz=100) as rec:
+        for i in (0, 20, 40, 60):
+            rec.write_frame(0, _frame(i, 0), frame_index=i)   # 200 ms apart
+    cam = ReplayCamera(tmp_path / "rec", 0, realtime=True)
+    cam.start()
+    t0 = time.monotonic()
+    assert cam.read(0.1).sequence == 0
+    assert cam.read(0.01) is None                  # the next frame is due 200 ms later
+    got = [cam.read(0.5).sequence for _ in range(3)]
+    assert got == [20, 40, 60] and time.monotonic() - t0 >= 0.6
+    cam.close()
+
+
 def test_existing_recording_is_not_overwritten(tmp_path):
     Recorder(tmp_path / "rec", _cams(1), rate_hz=1).close()
     with pytest.raises(ValueError, match="already holds"):
