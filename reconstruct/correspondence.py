@@ -26,7 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reconstruct.triangulation import RigArrays, triangulate_dlt, triangulate_normalized
+from scipy.spatial import cKDTree
+
+from reconstruct.triangulation import RigArrays, triangulate_normalized
 from reconstruct.types import PointCloud
 
 __all__ = ["CorrespondenceConfig", "EpipolarGeometry", "epipolar_geometry", "match_frame"]
@@ -125,7 +127,7 @@ def _seeds(blobs, epi: EpipolarGeometry, gate_px, avail):
     return np.concatenate(out) if out else np.zeros((0, 4), np.int64)
 
 
-def _extend(X, seeds, blobs, geo: RigArrays, gate_px, avail):
+def _extend(X, seeds, trees, geo: RigArrays, gate_px):
     """(K, C) blob index per camera for each seed point: the seed blobs plus the nearest
     available blob within ``gate_px`` of the projection in every other camera."""
     K, C = len(X), geo.n_cameras
@@ -135,17 +137,40 @@ def _extend(X, seeds, blobs, geo: RigArrays, gate_px, avail):
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = pc[..., :2] / z[..., None]
     for c in range(C):
-        idx = np.flatnonzero(avail[c])
-        if not idx.size:
+        tree, idx = trees[c]
+        if tree is None:
             continue
-        d = np.linalg.norm(uv[:, c, None, :] - blobs[c][idx][None], axis=2) * geo.f[c]
-        best = np.argmin(d, axis=1)
-        hit = (d[np.arange(K), best] < gate_px) & (z[:, c] > 0)
-        obs[hit, c] = idx[best[hit]]
+        front = np.flatnonzero(z[:, c] > 0)
+        d, j = tree.query(uv[front, c], k=1, distance_upper_bound=gate_px / geo.f[c])
+        hit = np.isfinite(d)
+        obs[front[hit], c] = idx[j[hit]]
     r = np.arange(K)
     obs[r, seeds[:, 0]] = seeds[:, 1]
     obs[r, seeds[:, 2]] = seeds[:, 3]
     return obs
+
+
+def _midpoints(seeds, blobs, geo: RigArrays):
+    """Two-ray midpoint triangulation of seed pairs, (K, 3)."""
+    def rays(cams, idx):
+        x = _gather(blobs, cams, idx)
+        d = np.concatenate([x, np.ones((len(x), 1))], axis=1)
+        d = np.einsum("kji,kj->ki", geo.R[cams], d)                     # R.T @ d
+        return geo.centres[cams], d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    o1, d1 = rays(seeds[:, 0], seeds[:, 1])
+    o2, d2 = rays(seeds[:, 2], seeds[:, 3])
+    w = o1 - o2
+    b = np.sum(d1 * d2, axis=1)
+    dd = np.sum(d1 * w, axis=1)
+    e = np.sum(d2 * w, axis=1)
+    den = 1 - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (b * e - dd) / den
+        u = (e - b * dd) / den
+    X = (o1 + s[:, None] * d1 + o2 + u[:, None] * d2) / 2
+    X[(den < 1e-12) | (s <= 0) | (u <= 0)] = np.nan
+    return X
 
 
 def _ray_angle_deg(X, cams, geo: RigArrays):
@@ -164,16 +189,15 @@ def _one_round(blobs, epi: EpipolarGeometry, cfg: CorrespondenceConfig, avail):
     seeds = _seeds(blobs, epi, cfg.gate_px, avail)
     if not len(seeds):
         return []
-    K = len(seeds)
-    xy = np.full((C, K, 2), np.nan)
-    r = np.arange(K)
-    xy[seeds[:, 0], r] = _gather(blobs, seeds[:, 0], seeds[:, 1])
-    xy[seeds[:, 2], r] = _gather(blobs, seeds[:, 2], seeds[:, 3])
-    X = triangulate_dlt(xy, geo)
+    X = _midpoints(seeds, blobs, geo)
     good = np.all(np.isfinite(X), axis=1)
     if not good.any():
         return []
-    obs = _extend(X[good], seeds[good], blobs, geo, cfg.gate_px, avail)
+    trees = []
+    for c in range(C):
+        idx = np.flatnonzero(avail[c])
+        trees.append((cKDTree(blobs[c][idx]), idx) if idx.size else (None, idx))
+    obs = _extend(X[good], seeds[good], trees, geo, cfg.gate_px)
     obs = np.unique(obs, axis=0)
     obs = obs[(obs >= 0).sum(axis=1) >= cfg.min_cameras]
     if not len(obs):
