@@ -1,0 +1,109 @@
+"""Spatial correspondence on simulated object-mode detections with spurious blobs."""
+import numpy as np
+import pytest
+
+from hw_sim.observe import observe
+from hw_sim.rig import make_rig
+from hw_sim.scenes import static_markers
+from reconstruct.correspondence import (CorrespondenceConfig, epipolar_geometry,
+                                        match_frame)
+from reconstruct.triangulation import rig_arrays
+from tests.reconstruct.simdata import match_points, reconstructable
+
+NOISE_PX = 0.05
+SPURIOUS_PER_CAMERA_FRAME = 0.4   # ~1% of the blobs of 40 markers
+MATCH_TOL_M = 0.005               # a point within this of a true marker is that marker
+MIN_FOUND = 0.995                 # acceptance: reconstructable markers found
+MAX_SPURIOUS = 0.002              # acceptance: spurious 3D points
+POINT_ERR_M = 0.002               # largest 3D error of a correct point at 0.05 px noise
+
+DIST = (-0.06, 0.01, 0.0, 0.0, 0.0)
+
+
+def _frames(rig, obs):
+    det = obs.detections
+    out = []
+    for f, s in det.frame_slices().items():
+        cam, xy = det.camera[s], det.xy[s]
+        mid = np.where(obs.merged_row[s], -2, obs.marker_id[s])  # -2: images of several markers
+        blobs = [rig[c].pixel_to_normalized(xy[cam == c]) for c in range(len(rig))]
+        ids = [mid[cam == c] for c in range(len(rig))]
+        out.append((f, blobs, ids))
+    return out
+
+
+@pytest.mark.parametrize("n_cameras", [3, 8, 12])
+def test_markers_found_no_spurious_blobs_used_once(n_cameras):
+    rig = make_rig(n_cameras, dist=DIST, rng=n_cameras)
+    scene = static_markers(40, 30, rng=1, min_separation_m=0.05)
+    obs = observe(rig, scene, rng=2, noise_px=NOISE_PX,
+                  spurious_per_frame=SPURIOUS_PER_CAMERA_FRAME)
+    epi = epipolar_geometry(rig_arrays(rig))
+    need = reconstructable(obs)
+    n_need = n_found = n_pts = n_spur = 0
+    for f, blobs, ids in _frames(rig, obs):
+        pc = match_frame(blobs, epi, frame=f)
+        assert pc.frame == f and pc.points.shape == (len(pc), 3)
+        truth = obs.positions[f]
+        m = match_points(pc.points, truth, MATCH_TOL_M)
+        n_pts += len(pc)
+        n_spur += int(np.sum(m < 0))
+        n_need += int(need[f].sum())
+        n_found += int(np.sum(need[f][np.unique(m[m >= 0])]))
+        ok = m >= 0
+        assert np.linalg.norm(pc.points[ok] - truth[m[ok]], axis=1).max() < POINT_ERR_M
+        # every contributing blob is an image of the point's marker; each blob used once
+        for c in range(n_cameras):
+            used = pc.obs[:, c][pc.cameras[:, c]]
+            assert len(np.unique(used)) == len(used)
+            sel = ok & pc.cameras[:, c]
+            blob_ids = ids[c][pc.obs[sel, c]]
+            single = blob_ids != -2
+            assert np.array_equal(blob_ids[single], m[sel][single])
+        assert np.all(pc.cameras.sum(axis=1) >= 2)
+    assert n_found / n_need >= MIN_FOUND, (n_found, n_need)
+    assert n_spur / max(n_pts, 1) <= MAX_SPURIOUS, (n_spur, n_pts)
+
+
+def test_ghost_pairs_of_two_markers_are_not_reconstructed():
+    """Two markers on a common epipolar plane of cameras 0 and 1 give two true and two ghost
+    intersections with those cameras alone; the third camera decides."""
+    rig = make_rig(3, rng=None)
+    c0, c1 = rig[0].center, rig[1].center
+    mid = np.array([0.0, 0.0, 1.2])
+    n = np.cross(c1 - c0, mid - c0)
+    n /= np.linalg.norm(n)
+    u = np.cross(n, c1 - c0)
+    u /= np.linalg.norm(u)
+    X = np.array([mid + 0.3 * u, mid - 0.25 * u + 0.2 * (c1 - c0) / np.linalg.norm(c1 - c0)])
+    xy = rig.project(X)
+    blobs = [rig[c].pixel_to_normalized(xy[c]) for c in range(3)]
+    pc = match_frame(blobs, epipolar_geometry(rig_arrays(rig)))
+    assert len(pc) == 2
+    order = np.argsort(match_points(pc.points, X, 1e-6))
+    assert np.abs(pc.points[order] - X).max() < 1e-9
+    assert pc.cameras.all()
+
+
+def test_points_outside_bounds_dropped_and_empty_frames():
+    rig = make_rig(4)
+    X = np.array([[0.0, 0.0, 1.0], [0.0, 0.5, -0.3]])  # second one under the floor
+    xy = rig.project(X)
+    blobs = [rig[c].pixel_to_normalized(xy[c]) for c in range(4)]
+    epi = epipolar_geometry(rig_arrays(rig))
+    cfg = CorrespondenceConfig(bounds=((-2, -2, 0), (2, 2, 2.5)))
+    pc = match_frame(blobs, epi, cfg)
+    assert len(pc) == 1 and np.abs(pc.points[0] - X[0]).max() < 1e-9
+    empty = match_frame([np.zeros((0, 2))] * 4, epi, cfg, frame=3)
+    assert len(empty) == 0 and empty.cameras.shape == (0, 4)
+
+
+def test_bad_input():
+    rig = make_rig(3)
+    epi = epipolar_geometry(rig_arrays(rig))
+    with pytest.raises(ValueError, match="3-camera"):
+        match_frame([np.zeros((0, 2))] * 2, epi)
+    with pytest.raises(ValueError, match="gate_px"):
+        CorrespondenceConfig(gate_px=0)
+    with pytest.raises(ValueError, match=r"blobs_norm\[1\]"):
+        match_frame([np.zeros((1, 2)), np.zeros((1, 3)), np.zeros((1, 2))], epi)
