@@ -32,8 +32,8 @@ class TrackingConfig:
         model: "velocity" (constant velocity) or "acceleration" (constant acceleration when a
             track has >= 3 consecutive samples, else constant velocity).
         base_gate_m: gate around a prediction, m (noise + model error at one frame).
-        max_accel_mps2: acceleration the gate allows for, m/s^2 (gate grows 0.5 a (k dt)^2
-            after k frames).
+        max_accel_mps2: acceleration the gate allows for, m/s^2 (the gate grows by
+            a dt^2 k (k + 1) / 2 after k frames, the constant-velocity prediction error).
         max_speed_mps: speed the gate allows for a track with no velocity yet, m/s.
         max_gap_frames: a track missing for more frames ends (the marker gets a new id).
         min_length: tracks with fewer samples are dropped (1 keeps every track).
@@ -94,8 +94,11 @@ def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
         pred[hv] += vel[hv] * k[hv, None]
         if cfg.model == "acceleration":
             ha = n_consec >= 3
-            pred[ha] += 0.5 * acc[ha] * (k[ha] ** 2)[:, None]
-        gate = np.where(hv, cfg.base_gate_m + 0.5 * cfg.max_accel_mps2 * (k * dt) ** 2,
+            # velocity is a backward difference (the velocity half a frame ago): exact for
+            # constant acceleration with the k (k + 1) / 2 factor
+            pred[ha] += 0.5 * acc[ha] * (k[ha] * (k[ha] + 1))[:, None]
+        # constant-velocity prediction error under acceleration a: a dt^2 k (k + 1) / 2
+        gate = np.where(hv, cfg.base_gate_m + 0.5 * cfg.max_accel_mps2 * dt ** 2 * k * (k + 1),
                         cfg.base_gate_m + cfg.max_speed_mps * k * dt)
         matched_tr = np.zeros(len(ids), bool)
         matched_pt = np.zeros(len(pts), bool)
@@ -107,11 +110,17 @@ def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
             r, c = r[ok], c[ok]
             newp = pts[c]
             consec = missed[r] == 0
-            v_new = (newp - last[r]) / (missed[r] + 1)[:, None]
-            a_new = np.where((consec & (n_consec[r] >= 2))[:, None], v_new - vel[r], 0.0)
-            acc[r] = a_new
+            kr = (missed[r] + 1).astype(np.float64)
+            v_diff = (newp - last[r]) / kr[:, None]
+            # after a gap the difference spans several frames (a poor velocity): keep the
+            # model's own velocity propagated over the gap when it has one
+            use_acc = n_consec[r] >= (3 if cfg.model == "acceleration" else 10**9)
+            v_prop = vel[r] + np.where(use_acc[:, None], acc[r] * kr[:, None], 0.0)
+            had_v = n_consec[r] >= 2
+            v_new = np.where((consec | ~had_v)[:, None], v_diff, v_prop)
+            acc[r] = np.where((consec & had_v)[:, None], v_new - vel[r], acc[r])
             vel[r] = v_new
-            n_consec[r] = np.where(consec, n_consec[r] + 1, 2)
+            n_consec[r] = np.where(consec, n_consec[r] + 1, np.maximum(n_consec[r], 2))
             last[r] = newp
             missed[r] = 0
             matched_tr[r] = True

@@ -1,0 +1,116 @@
+"""Tracking: identities kept through motion and short gaps, new ids after long gaps."""
+import numpy as np
+import pytest
+
+from reconstruct.tracking import TrackingConfig, track
+from reconstruct.types import MarkerCloudSequence, PointCloud
+from tests.reconstruct.simdata import moving_markers
+
+RATE_HZ = 120.0
+NOISE_M = 0.0003          # 3D point noise, about the triangulation error at 0.05 px
+MAX_GAP = 5
+
+
+def _clouds(P, present, rng, noise=NOISE_M, extra=None):
+    """Shuffled noisy clouds of the present markers (+ optional extra points per frame)."""
+    g = np.random.default_rng(rng)
+    out, truth = [], []
+    for t in range(len(P)):
+        idx = np.flatnonzero(present[t])
+        pts = P[t, idx] + g.normal(0, noise, (idx.size, 3))
+        ids = idx
+        if extra is not None and len(extra[t]):
+            pts = np.concatenate([pts, extra[t]])
+            ids = np.concatenate([ids, np.full(len(extra[t]), -1)])
+        perm = g.permutation(len(pts))
+        pts, ids = pts[perm], ids[perm]
+        n = len(pts)
+        out.append(PointCloud(frame=t, points=pts, residual_px=np.zeros(n),
+                              residual_mm=np.zeros(n), cameras=np.ones((n, 2), bool),
+                              obs=np.zeros((n, 2), np.int64)))
+        truth.append(ids)
+    return MarkerCloudSequence(clouds=tuple(out), rate_hz=RATE_HZ), truth
+
+
+def _owner(traj, clouds, truth):
+    """(T, M) truth id behind every trajectory sample (-2 where empty)."""
+    T, M = traj.positions.shape[:2]
+    own = np.full((T, M), -2)
+    for t in range(T):
+        for m in range(M):
+            p = traj.positions[t, m]
+            if np.isfinite(p).all():
+                k = np.flatnonzero(np.all(clouds[t].points == p, axis=1))
+                own[t, m] = truth[t][k[0]]
+    return own
+
+
+def test_no_swaps_through_motion_and_short_gaps():
+    scene = moving_markers(40, 360, RATE_HZ, rng=1, speed_mps=1.5, n_occluders=0)
+    P = scene.positions
+    g = np.random.default_rng(2)
+    present = np.ones(P.shape[:2], bool)
+    # short gaps (<= MAX_GAP) everywhere, one long gap for marker 0
+    for _ in range(60):
+        m, t0, n = g.integers(0, 40), g.integers(5, 340), g.integers(1, MAX_GAP + 1)
+        present[t0:t0 + n, m] = False
+    present[:, 0] = True
+    present[100:100 + MAX_GAP + 3, 0] = False
+    clouds, truth = _clouds(P, present, 3)
+    traj = track(clouds, TrackingConfig(max_gap_frames=MAX_GAP))
+    own = _owner(traj, clouds, truth)
+    for m in range(traj.n_markers):
+        ids = set(own[:, m][own[:, m] >= -1].tolist())
+        assert len(ids) == 1, (m, ids)                 # zero identity swaps
+    # a marker is split exactly at its gaps longer than MAX_GAP (marker 0 has one)
+    per_marker = np.array([np.sum([(own[:, m] == i).any() for m in range(traj.n_markers)])
+                           for i in range(40)])
+    expected = np.array([1 + np.sum(np.diff(np.flatnonzero(present[:, i])) > MAX_GAP + 1)
+                         for i in range(40)])
+    assert expected[0] == 2
+    assert np.array_equal(per_marker, expected)
+    assert traj.n_markers == expected.sum()
+    # every sample placed, and gaps are NaN
+    assert traj.present().sum() == present.sum()
+    assert traj.residual_mm.shape == (360, expected.sum())
+
+
+def test_spurious_points_do_not_steal_identities():
+    scene = moving_markers(20, 240, RATE_HZ, rng=4, n_occluders=0)
+    P = scene.positions
+    g = np.random.default_rng(5)
+    extra = [g.uniform([-1, -1, 0.3], [1, 1, 2.1], (g.poisson(0.3), 3)) for _ in range(240)]
+    clouds, truth = _clouds(P, np.ones(P.shape[:2], bool), 6, extra=extra)
+    traj = track(clouds)
+    own = _owner(traj, clouds, truth)
+    for i in range(20):
+        cols = [m for m in range(traj.n_markers) if (own[:, m] == i).any()]
+        assert len(cols) == 1
+        assert set(own[:, cols[0]][own[:, cols[0]] != -2].tolist()) == {i}
+
+
+def test_acceleration_model_bridges_a_gap_the_velocity_model_cannot():
+    t = np.arange(120) / RATE_HZ
+    a = 9.81
+    P = np.stack([np.zeros_like(t), 0.5 * t, 1.0 + 3.0 * t - a / 2 * t ** 2], 1)[:, None]
+    present = np.ones((120, 1), bool)
+    present[40:44] = False                     # 4 missing frames: predicted 5 frames ahead
+    clouds, _ = _clouds(P, present, 0, noise=0.0)
+    adt2 = a / RATE_HZ ** 2
+    # the gate passes a one-frame velocity prediction (error a dt^2) but not five frames
+    # (error 15 a dt^2)
+    kw = dict(base_gate_m=2 * adt2, max_accel_mps2=0.1 * a, max_gap_frames=5)
+    traj = track(clouds, TrackingConfig(model="acceleration", **kw))
+    assert traj.n_markers == 1
+    assert np.array_equal(traj.present()[:, 0], present[:, 0])
+    assert np.abs(traj.positions[present[:, 0], 0] - P[present[:, 0], 0]).max() < 1e-12
+    assert track(clouds, TrackingConfig(model="velocity", **kw)).n_markers == 2
+
+
+def test_config_and_input_validation():
+    with pytest.raises(ValueError, match="model"):
+        TrackingConfig(model="kalman")
+    with pytest.raises(ValueError, match="rate_hz"):
+        track(MarkerCloudSequence(clouds=(PointCloud.empty(0, 2),)))
+    empty = track(MarkerCloudSequence(clouds=(), rate_hz=100.0))
+    assert empty.positions.shape == (0, 0, 3)
