@@ -213,20 +213,25 @@ def _one_round(blobs, epi: EpipolarGeometry, cfg: CorrespondenceConfig, avail):
     keep = res.ok & (n_used >= cfg.min_cameras) & (worst <= cfg.max_error_px)
     idx = np.flatnonzero(keep)
     order = idx[np.lexsort((res.residual_px[idx], -n_used[idx]))]
-    taken = [np.zeros(len(b), bool) for b in blobs]
+    # greedy acceptance; blob ids c * stride + b in a set (faster than array tests here)
+    stride = max(len(b) for b in blobs) + 1
+    keys = np.where(used[order], obs[order] + stride * np.arange(C)[None], -1).tolist()
+    taken: set[int] = set()
     accepted = []
-    for k in order:
-        cams = np.flatnonzero(used[k])
-        bl = obs[k, cams]
-        if any(taken[c][b] for c, b in zip(cams, bl)):
-            continue
-        for c, b in zip(cams, bl):
-            taken[c][b] = True
-            avail[c][b] = False
-        o = np.full(C, -1, np.int64)
-        o[cams] = bl
-        accepted.append((res.points[k], res.residual_px[k], res.residual_mm[k], o))
-    return accepted
+    for k, row in zip(order.tolist(), keys):
+        ks = [x for x in row if x >= 0]
+        if taken.isdisjoint(ks):
+            taken.update(ks)
+            accepted.append(k)
+    if not accepted:
+        return []
+    acc = np.array(accepted)
+    o = np.where(used[acc], obs[acc], -1)
+    for c in range(C):
+        b = o[:, c]
+        avail[c][b[b >= 0]] = False
+    return [(res.points[k], res.residual_px[k], res.residual_mm[k], o[i])
+            for i, k in enumerate(accepted)]
 
 
 def _gather(blobs, cams, idx):
