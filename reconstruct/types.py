@@ -42,18 +42,18 @@ class PointCloud:
     obs: np.ndarray
 
     def __post_init__(self):
-        p = np.asarray(self.points, dtype=np.float64)
+        p = np.array(self.points, dtype=np.float64)   # copies: the caller's arrays stay writable
         if p.size == 0:
             p = p.reshape(0, 3)
         if p.ndim != 2 or p.shape[1] != 3:
             raise ValueError(f"points.shape={p.shape}, expected (N, 3)")
         N = p.shape[0]
-        rp = np.asarray(self.residual_px, dtype=np.float64).reshape(-1)
-        rm = np.asarray(self.residual_mm, dtype=np.float64).reshape(-1)
+        rp = np.array(self.residual_px, dtype=np.float64).reshape(-1)
+        rm = np.array(self.residual_mm, dtype=np.float64).reshape(-1)
         if rp.shape != (N,) or rm.shape != (N,):
             raise ValueError(f"residual_px {rp.shape} / residual_mm {rm.shape}, expected ({N},)")
-        cams = np.asarray(self.cameras, dtype=bool)
-        obs = np.asarray(self.obs, dtype=np.int64)
+        cams = np.array(self.cameras, dtype=bool)
+        obs = np.array(self.obs, dtype=np.int64)
         if cams.ndim != 2 or cams.shape[0] != N:
             raise ValueError(f"cameras.shape={cams.shape}, expected ({N}, C)")
         if obs.shape != cams.shape:
@@ -63,7 +63,7 @@ class PointCloud:
         object.__setattr__(self, "frame", int(self.frame))
         for name, a in (("points", p), ("residual_px", rp), ("residual_mm", rm),
                         ("cameras", cams), ("obs", obs)):
-            object.__setattr__(self, name, _ro(a.copy() if not a.flags.writeable else a))
+            object.__setattr__(self, name, _ro(a))
 
     def __len__(self) -> int:
         return int(self.points.shape[0])

@@ -114,3 +114,26 @@ def test_config_and_input_validation():
         track(MarkerCloudSequence(clouds=(PointCloud.empty(0, 2),)))
     empty = track(MarkerCloudSequence(clouds=(), rate_hz=100.0))
     assert empty.positions.shape == (0, 0, 3)
+
+
+def test_stage_records_check_shapes():
+    from reconstruct.types import Trajectories
+    with pytest.raises(ValueError, match="points.shape"):
+        PointCloud(frame=0, points=np.zeros((2, 2)), residual_px=np.zeros(2),
+                   residual_mm=np.zeros(2), cameras=np.ones((2, 3), bool),
+                   obs=np.zeros((2, 3), np.int64))
+    with pytest.raises(ValueError, match="obs and cameras"):
+        PointCloud(frame=0, points=np.zeros((1, 3)), residual_px=np.zeros(1),
+                   residual_mm=np.zeros(1), cameras=np.array([[True, False]]),
+                   obs=np.array([[0, 0]]))
+    with pytest.raises(ValueError, match="increasing"):
+        MarkerCloudSequence(clouds=(PointCloud.empty(3, 2), PointCloud.empty(1, 2)))
+    with pytest.raises(ValueError, match="filled.shape"):
+        Trajectories(positions=np.zeros((4, 2, 3)), rate_hz=100.0, labels=("a", "b"),
+                     filled=np.zeros((4, 3), bool))
+    with pytest.raises(ValueError, match="labels"):
+        Trajectories(positions=np.zeros((4, 2, 3)), rate_hz=100.0, labels=("a",))
+    pts = np.zeros((1, 3))
+    pc = PointCloud(frame=0, points=pts, residual_px=[0.0], residual_mm=[0.0],
+                    cameras=[[True, True]], obs=[[0, 1]])
+    assert pts.flags.writeable and not pc.points.flags.writeable
