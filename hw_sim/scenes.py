@@ -217,16 +217,26 @@ def figure(n_frames: int = 200, rate_hz: float = 100.0, rng=None, *,
     motion = articulated.animate(fig, n_frames, rate_hz, rng=g, **kw)
     markers = np.asarray(motion.markers, dtype=np.float64)
     M = markers.shape[1]
-    labels = tuple(getattr(fig, "marker_names", None) or (f"M{i + 1}" for i in range(M)))
-    diam = getattr(fig, "marker_diameter_m", 0.014)
-    diam = np.broadcast_to(np.asarray(diam, dtype=np.float64), (M,))
-    radii = getattr(fig, "capsule_radii_m", None)
-    if radii is None:
-        radii = getattr(fig, "capsule_radius_m", None)
-    caps = getattr(motion, "capsules", None)
-    jc = getattr(motion, "joint_centres", None)
+    labels = _first_attr((fig, motion), ("marker_names", "marker_labels", "labels"))
+    labels = tuple(labels) if labels is not None else tuple(f"M{i + 1}" for i in range(M))
+    diam = _first_attr((fig, motion), ("marker_diameter_m", "marker_diameters_m"))
+    diam = np.broadcast_to(np.asarray(0.014 if diam is None else diam, np.float64), (M,))
+    radii = _first_attr((fig, motion), ("capsule_radii_m", "capsule_radius_m",
+                                        "segment_radii_m", "radii_m", "capsule_radii"))
+    caps = _first_attr((motion,), ("capsules", "capsule_segments"))
+    if caps is None or radii is None:
+        raise ValueError("hw_sim.articulated gave no capsules/radii for occlusion "
+                         f"(capsules={caps is not None}, radii={radii is not None})")
+    jc = _first_attr((motion,), ("joint_centres", "joint_centers"))
     return MarkerScene(positions=markers, marker_diameter_m=diam, rate_hz=rate_hz,
-                       labels=labels,
-                       occluder_segments=None if radii is None else caps,
-                       occluder_radii_m=None if caps is None else radii,
+                       labels=labels, occluder_segments=caps, occluder_radii_m=radii,
                        joint_centres=jc)
+
+
+def _first_attr(objs, names):
+    for o in objs:
+        for n in names:
+            v = getattr(o, n, None)
+            if v is not None:
+                return v
+    return None

@@ -88,3 +88,47 @@ def test_bad_wand():
         wand(10, spacing_mm=(0,))
     with pytest.raises(ValueError, match="spacing_mm"):
         wand(10, spacing_mm=(0, 300, 200))
+
+
+def test_figure_scene_has_body_occluders():
+    articulated = pytest.importorskip("hw_sim.articulated")  # written in parallel
+    from hw_sim.observe import observe
+    from hw_sim.rig import make_rig
+    from hw_sim.scenes import figure
+
+    s = figure(40, 100.0, rng=1)
+    T, M, _ = s.positions.shape
+    assert T == 40 and 30 <= M <= 60
+    assert s.occluder_segments.shape[:2] == (40, s.occluder_radii_m.size)
+    assert 10 <= s.occluder_radii_m.size <= 25
+    assert np.array_equal(s.positions, figure(40, 100.0, rng=1).positions)
+    obs = observe(make_rig(8), s, rng=2, noise_px=0.0)
+    # the body hides some markers from some cameras, but every marker is seen by >= 2
+    # cameras in most frames
+    assert 0.02 < obs.occluded.mean() < 0.6
+    seen = obs.visible.sum(1)
+    assert np.mean(seen >= 2) > 0.9
+
+
+def test_figure_wires_articulated_output(monkeypatch):
+    """figure() passes markers, capsules, radii, labels and joints through unchanged."""
+    import sys
+    import types
+
+    from hw_sim.scenes import figure
+
+    T = 5
+    markers = np.random.default_rng(0).normal(size=(T, 3, 3))
+    caps = np.random.default_rng(1).normal(size=(T, 2, 2, 3))
+    fake = types.ModuleType("hw_sim.articulated")
+    fig = types.SimpleNamespace(marker_names=("a", "b", "c"), capsule_radii_m=np.array([0.1, 0.2]))
+    fake.humanoid = lambda rng: fig
+    fake.animate = lambda f, n, rate, rng=None, rom_deg=90.0: types.SimpleNamespace(
+        markers=markers[:n], capsules=caps[:n], joint_centres=np.zeros((n, 4, 3)))
+    monkeypatch.setitem(sys.modules, "hw_sim.articulated", fake)
+    s = figure(T, 50.0, rng=0, rom_deg=120.0)
+    assert np.array_equal(s.positions, markers)
+    assert np.array_equal(s.occluder_segments, caps)
+    assert np.array_equal(s.occluder_radii_m, [0.1, 0.2])
+    assert s.labels == ("a", "b", "c") and s.rate_hz == 50.0
+    assert s.joint_centres.shape == (T, 4, 3)
