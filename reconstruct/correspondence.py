@@ -22,6 +22,7 @@ Conventions: docs/conventions.md [pixels], [frames], [arrays]. Works for any C >
 """
 from __future__ import annotations
 
+import heapq
 from dataclasses import dataclass
 
 import numpy as np
@@ -212,26 +213,47 @@ def _one_round(blobs, epi: EpipolarGeometry, cfg: CorrespondenceConfig, avail):
     worst = np.nanmax(np.where(used, res.ray_error_px, 0.0), axis=1)
     keep = res.ok & (n_used >= cfg.min_cameras) & (worst <= cfg.max_error_px)
     idx = np.flatnonzero(keep)
-    order = idx[np.lexsort((res.residual_px[idx], -n_used[idx]))]
-    # greedy acceptance; blob ids c * stride + b in a set (faster than array tests here)
+    # Greedy acceptance, best first: a heap keyed by (-cameras, RMS error). A candidate that
+    # shares some blobs with an accepted point loses them and, if it keeps >= min_cameras,
+    # is re-triangulated and pushed back (e.g. a marker whose merged blob went to a
+    # neighbour keeps its other views). Blob ids are c * stride + b in a set.
     stride = max(len(b) for b in blobs) + 1
-    keys = np.where(used[order], obs[order] + stride * np.arange(C)[None], -1).tolist()
+    offs = stride * np.arange(C)
+    heap = [(-int(n_used[k]), float(res.residual_px[k]), i, res.points[k],
+             float(res.residual_mm[k]), np.where(used[k], obs[k], -1))
+            for i, k in enumerate(idx)]
+    heapq.heapify(heap)
+    tie = len(heap)
     taken: set[int] = set()
     accepted = []
-    for k, row in zip(order.tolist(), keys):
-        ks = [x for x in row if x >= 0]
+    while heap:
+        item = heapq.heappop(heap)
+        o = item[5]
+        ks = (o + offs)[o >= 0].tolist()
         if taken.isdisjoint(ks):
             taken.update(ks)
-            accepted.append(k)
-    if not accepted:
-        return []
-    acc = np.array(accepted)
-    o = np.where(used[acc], obs[acc], -1)
-    for c in range(C):
-        b = o[:, c]
-        avail[c][b[b >= 0]] = False
-    return [(res.points[k], res.residual_px[k], res.residual_mm[k], o[i])
-            for i, k in enumerate(accepted)]
+            accepted.append(item)
+            continue
+        free = np.array([(x not in taken) for x in (o + offs).tolist()]) & (o >= 0)
+        if free.sum() < cfg.min_cameras or free.sum() == (o >= 0).sum():
+            continue
+        o2 = np.where(free, o, -1)
+        xy = np.full((C, 1, 2), np.nan)
+        for c in np.flatnonzero(free):
+            xy[c, 0] = blobs[c][o2[c]]
+        r = triangulate_normalized(xy, geo, bad_ray_px=cfg.bad_ray_px)
+        nu = int(r.used[0].sum())
+        if (not r.ok[0] or nu < cfg.min_cameras
+                or np.nanmax(np.where(r.used[0], r.ray_error_px[0], 0.0)) > cfg.max_error_px):
+            continue
+        tie += 1
+        heapq.heappush(heap, (-nu, float(r.residual_px[0]), tie, r.points[0],
+                              float(r.residual_mm[0]), np.where(r.used[0], o2, -1)))
+    for item in accepted:
+        o = item[5]
+        for c in np.flatnonzero(o >= 0):
+            avail[c][o[c]] = False
+    return [(it[3], it[1], it[4], it[5]) for it in accepted]
 
 
 def _gather(blobs, cams, idx):
