@@ -107,3 +107,26 @@ def test_bad_input():
         CorrespondenceConfig(gate_px=0)
     with pytest.raises(ValueError, match=r"blobs_norm\[1\]"):
         match_frame([np.zeros((1, 2)), np.zeros((1, 3)), np.zeros((1, 2))], epi)
+
+
+def test_marker_losing_a_merged_blob_keeps_its_other_views():
+    """Two markers whose images coincide in camera 0 (one merged blob): one point takes the
+    blob, the other is reconstructed once from its remaining views (not split in two)."""
+    rig = make_rig(6)
+    A = np.array([0.1, -0.2, 1.1])
+    cam0 = rig[0]
+    ray = (A - cam0.center) / np.linalg.norm(A - cam0.center)
+    side = np.cross(ray, [0, 0, 1.0])
+    side /= np.linalg.norm(side)
+    depth = cam0.depth(A[None])[0]
+    B = A + 0.25 * ray + 0.8 * depth / cam0.K[0, 0] * side   # ~0.8 px apart in camera 0
+    X = np.stack([A, B])
+    xy = rig.project(X)
+    blobs = [rig[c].pixel_to_normalized(xy[c]) for c in range(6)]
+    blobs[0] = rig[0].pixel_to_normalized(xy[0].mean(axis=0, keepdims=True))   # merged
+    # one round: the loser must be re-queued within the round, not left to a second round
+    pc = match_frame(blobs, epipolar_geometry(rig_arrays(rig)), CorrespondenceConfig(rounds=1))
+    assert len(pc) == 2
+    m = match_points(pc.points, X, 0.002)
+    assert sorted(m.tolist()) == [0, 1]
+    assert pc.cameras[:, 0].sum() == 1 and pc.cameras[:, 1:].all()
