@@ -219,41 +219,49 @@ def _one_round(blobs, epi: EpipolarGeometry, cfg: CorrespondenceConfig, avail):
     # neighbour keeps its other views). Blob ids are c * stride + b in a set.
     stride = max(len(b) for b in blobs) + 1
     offs = stride * np.arange(C)
-    heap = [(-int(n_used[k]), float(res.residual_px[k]), i, res.points[k],
-             float(res.residual_mm[k]), np.where(used[k], obs[k], -1))
-            for i, k in enumerate(idx)]
+    o_all = np.where(used[idx], obs[idx], -1)
+    keys_all = np.where(o_all >= 0, o_all + offs[None], -1).tolist()
+    heap = [(-int(n_used[k]), float(res.residual_px[k]), i, k, [x for x in keys_all[i] if x >= 0])
+            for i, k in enumerate(idx.tolist())]
     heapq.heapify(heap)
     tie = len(heap)
+    extra = {}           # re-triangulated candidates: tie -> (point, residual_mm, obs row)
     taken: set[int] = set()
     accepted = []
     while heap:
-        item = heapq.heappop(heap)
-        o = item[5]
-        ks = (o + offs)[o >= 0].tolist()
-        if taken.isdisjoint(ks):
+        n_neg, rms, i, k, ks = heapq.heappop(heap)
+        free = [x for x in ks if x not in taken]
+        if len(free) == len(ks):
             taken.update(ks)
-            accepted.append(item)
+            if i in extra:
+                X, rmm, o = extra[i]
+            else:
+                X, rmm, o = res.points[k], float(res.residual_mm[k]), o_all[i]
+            accepted.append((X, rms, rmm, o))
             continue
-        free = np.array([(x not in taken) for x in (o + offs).tolist()]) & (o >= 0)
-        if free.sum() < cfg.min_cameras or free.sum() == (o >= 0).sum():
+        if len(free) < cfg.min_cameras:
             continue
-        o2 = np.where(free, o, -1)
+        o2 = np.full(C, -1, np.int64)
+        fa = np.array(free)
+        o2[fa // stride] = fa % stride
         xy = np.full((C, 1, 2), np.nan)
-        for c in np.flatnonzero(free):
+        for c in np.flatnonzero(o2 >= 0):
             xy[c, 0] = blobs[c][o2[c]]
         r = triangulate_normalized(xy, geo, bad_ray_px=cfg.bad_ray_px)
         nu = int(r.used[0].sum())
         if (not r.ok[0] or nu < cfg.min_cameras
                 or np.nanmax(np.where(r.used[0], r.ray_error_px[0], 0.0)) > cfg.max_error_px):
             continue
+        o2 = np.where(r.used[0], o2, -1)
         tie += 1
-        heapq.heappush(heap, (-nu, float(r.residual_px[0]), tie, r.points[0],
-                              float(r.residual_mm[0]), np.where(r.used[0], o2, -1)))
+        extra[tie] = (r.points[0], float(r.residual_mm[0]), o2)
+        heapq.heappush(heap, (-nu, float(r.residual_px[0]), tie, -1,
+                              (o2 + offs)[o2 >= 0].tolist()))
     for item in accepted:
-        o = item[5]
+        o = item[3]
         for c in np.flatnonzero(o >= 0):
             avail[c][o[c]] = False
-    return [(it[3], it[1], it[4], it[5]) for it in accepted]
+    return accepted
 
 
 def _gather(blobs, cams, idx):
