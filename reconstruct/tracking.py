@@ -35,21 +35,24 @@ class TrackingConfig:
         max_accel_mps2: acceleration the gate allows for, m/s^2 (the gate grows by
             a dt^2 k (k + 1) / 2 after k frames, the constant-velocity prediction error).
         max_speed_mps: speed the gate allows for a track with no velocity yet, m/s.
+        max_gate_m: the gate never exceeds this (a marker moving off its prediction by more
+            is broken off as a new trajectory rather than risk taking a neighbour's point).
         max_gap_frames: a track missing for more frames ends (the marker gets a new id).
         min_length: tracks with fewer samples are dropped (1 keeps every track).
     """
 
     model: str = "velocity"
-    base_gate_m: float = 0.01
-    max_accel_mps2: float = 100.0
-    max_speed_mps: float = 4.0
+    base_gate_m: float = 0.006
+    max_accel_mps2: float = 60.0
+    max_speed_mps: float = 3.0
+    max_gate_m: float = 0.03
     max_gap_frames: int = 5
     min_length: int = 1
 
     def __post_init__(self):
         if self.model not in _MODELS:
             raise ValueError(f"model={self.model!r}, expected one of {_MODELS}")
-        for name in ("base_gate_m", "max_accel_mps2", "max_speed_mps"):
+        for name in ("base_gate_m", "max_accel_mps2", "max_speed_mps", "max_gate_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}={getattr(self, name)}, expected > 0")
         if self.max_gap_frames < 0:
@@ -100,6 +103,7 @@ def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
         # constant-velocity prediction error under acceleration a: a dt^2 k (k + 1) / 2
         gate = np.where(hv, cfg.base_gate_m + 0.5 * cfg.max_accel_mps2 * dt ** 2 * k * (k + 1),
                         cfg.base_gate_m + cfg.max_speed_mps * k * dt)
+        gate = np.minimum(gate, cfg.max_gate_m)
         matched_tr = np.zeros(len(ids), bool)
         matched_pt = np.zeros(len(pts), bool)
         if len(ids) and len(pts):

@@ -107,6 +107,23 @@ def test_acceleration_model_bridges_a_gap_the_velocity_model_cannot():
     assert track(clouds, TrackingConfig(model="velocity", **kw)).n_markers == 2
 
 
+def test_marker_reappearing_beside_a_vanishing_one_is_not_swapped():
+    """A vanishes in the frame where B, 15 mm away, reappears after a long gap: B must get a
+    new trajectory, not continue A's."""
+    t = np.arange(120) / RATE_HZ
+    A = np.stack([0.8 * t, 0.3 * np.sin(3 * t), 1.0 + 0 * t], 1)
+    P = np.stack([A, A + [0.0, 0.015, 0.0]], axis=1)
+    present = np.ones((120, 2), bool)
+    present[41:61, 1] = False           # B gone 20 frames
+    present[61:81, 0] = False           # A gone when B comes back
+    clouds, truth = _clouds(P, present, 1)
+    traj = track(clouds)
+    own = _owner(traj, clouds, truth)
+    for m in range(traj.n_markers):
+        assert len(set(own[:, m][own[:, m] >= 0].tolist())) == 1
+    assert traj.n_markers == 4
+
+
 def test_config_and_input_validation():
     with pytest.raises(ValueError, match="model"):
         TrackingConfig(model="kalman")
