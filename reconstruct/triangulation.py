@@ -216,8 +216,8 @@ def triangulate_normalized(xy_norm: np.ndarray, geo: RigArrays, *, mask: np.ndar
     X[~ok] = np.nan
     rms[~ok] = np.nan
     res_mm[~ok] = np.nan
-    return TriangulationResult(points=X, residual_px=rms, residual_mm=res_mm, used=used & ok[:, None],
-                               ray_error_px=ray_err, ok=ok)
+    return TriangulationResult(points=X, residual_px=rms, residual_mm=res_mm,
+                               used=used & ok[:, None], ray_error_px=ray_err, ok=ok)
 
 
 def triangulate(rig: Rig, xy_px, **kwargs) -> TriangulationResult:
