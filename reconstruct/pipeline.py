@@ -10,7 +10,7 @@ Conventions: docs/conventions.md [camera-order], [arrays], [units].
 from __future__ import annotations
 
 import os
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -125,7 +125,6 @@ def reconstruct_clouds(detections: Detections2D, rig: Rig,
     else:
         with ProcessPoolExecutor(max_workers=min(n_workers, len(chunks))) as ex:
             futs = {ex.submit(_match_chunk, *args(s)): i for i, s in enumerate(chunks)}
-            from concurrent.futures import as_completed
             for fut in as_completed(futs):
                 i = futs[fut]
                 results[i] = fut.result()
