@@ -130,3 +130,22 @@ def test_marker_losing_a_merged_blob_keeps_its_other_views():
     m = match_points(pc.points, X, 0.002)
     assert sorted(m.tolist()) == [0, 1]
     assert pc.cameras[:, 0].sum() == 1 and pc.cameras[:, 1:].all()
+
+
+def test_result_does_not_depend_on_blob_order():
+    rig = make_rig(8, dist=DIST, rng=3)
+    scene = static_markers(30, 1, rng=4, min_separation_m=0.05)
+    obs = observe(rig, scene, rng=5, noise_px=NOISE_PX, spurious_per_frame=0.5)
+    epi = epipolar_geometry(rig_arrays(rig))
+    _, blobs, _ = _frames(rig, obs)[0]
+    ref = match_frame(blobs, epi)
+    g = np.random.default_rng(6)
+    for _ in range(3):
+        perms = [g.permutation(len(b)) for b in blobs]
+        pc = match_frame([b[p] for b, p in zip(blobs, perms)], epi)
+        assert len(pc) == len(ref)
+        a, b = np.lexsort(ref.points.T), np.lexsort(pc.points.T)
+        assert np.abs(ref.points[a] - pc.points[b]).max() < 1e-9
+        for c in range(8):   # obs indexes the permuted list: same blobs
+            used = pc.cameras[b, c]
+            assert np.array_equal(perms[c][pc.obs[b, c][used]], ref.obs[a, c][ref.cameras[a, c]])
