@@ -1,0 +1,104 @@
+"""Wand (or single-point) calibration of a camera rig, end to end.
+
+``calibrate_wand``: wand detection (``wand_detect``) -> initial poses (``init_extrinsics``)
+-> sparse bundle adjustment (``bundle``) -> report (``report``). The result's gauge is camera 0
+at the identity pose; use ``calibration.world`` to set the floor and axes.
+Conventions: docs/conventions.md ([frames], [pixels], [units], [camera-order]).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from calibration.bundle import bundle_adjust
+from calibration.camera import Camera, Rig
+from calibration.init_extrinsics import initial_poses, normalized, triangulate
+from calibration.report import CalibrationReport, make_report
+from calibration.wand_detect import detect_single_point, detect_wand
+from capture.detections import Detections2D
+
+
+@dataclass(frozen=True, kw_only=True)
+class WandCalibration:
+    """rig: calibrated cameras (None when not ok); report; ok; reason when not ok."""
+
+    rig: Rig | None
+    report: CalibrationReport | None
+    ok: bool
+    reason: str = ""
+    residual_px: np.ndarray | None = None
+
+
+def _intrinsics(initial, det: Detections2D) -> list[Camera]:
+    cams = list(initial)
+    if len(cams) != det.n_cameras:
+        raise ValueError(f"initial_intrinsics has {len(cams)} cameras, detections have "
+                         f"{det.n_cameras}")
+    names = [c.name for c in cams]
+    if names != list(det.camera_names):
+        raise ValueError(f"initial_intrinsics cameras {names} differ from detections "
+                         f"{list(det.camera_names)}")
+    return [Camera(name=c.name, size=c.size, K=c.K, dist=c.dist) for c in cams]
+
+
+def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0, 250.0, 500.0),
+                   single_point: bool = False, refine_intrinsics: bool = False, rng=None,
+                   progress: Callable[[str], None] | None = None,
+                   max_frames: int | None = None) -> WandCalibration:
+    """Calibrate the extrinsics (and optionally intrinsics) of a rig from a waved wand.
+
+    Args:
+        detections: raw blob centroids (px).
+        initial_intrinsics: a Rig or list of Camera giving K, size and distortion.
+        wand_mm: marker positions along the wand (2 or 3 values, mm).
+        single_point: one marker only (no metric scale: camera 0 to camera 1 distance = 1).
+        refine_intrinsics: also refine f, cx, cy, k1, k2 per camera.
+        rng: seed / Generator; the result does not depend on it beyond RANSAC seeding
+            (fixed by it, default 0) and frame subsampling (evenly spaced, deterministic).
+        max_frames: use at most this many frames with the most views (evenly spread).
+    """
+    say = progress or (lambda s: None)
+    seed = int(np.random.default_rng(rng).integers(2**31)) if rng is not None else 0
+    cv2.setRNGSeed(seed)
+    cams = _intrinsics(initial_intrinsics, detections)
+    if single_point:
+        obs = detect_single_point(detections)
+        spacing = None
+    else:
+        obs = detect_wand(detections, cams, wand_mm)
+        spacing = obs.spacing_m
+    xy = obs.xy
+    n_views = np.all(np.isfinite(xy), axis=(2, 3)).sum(axis=0)
+    frames = np.flatnonzero(n_views >= 2)
+    if max_frames is not None and len(frames) > max_frames:
+        frames = frames[np.linspace(0, len(frames) - 1, max_frames).round().astype(int)]
+    xy = xy[:, frames]
+    say(f"{len(frames)} frames with the wand in >= 2 cameras")
+    if len(frames) < 10:
+        return WandCalibration(rig=None, report=None, ok=False,
+                               reason=f"only {len(frames)} usable frames")
+    nxy = normalized(xy, cams)
+    init, nxy = initial_poses(nxy, spacing_m=spacing, symmetric=obs.symmetric)
+    if not init.ok:
+        return WandCalibration(rig=None, report=None, ok=False, reason=init.reason)
+    # the end order found in normalised coordinates applies to the pixels too
+    flip = np.any(np.isfinite(nxy[:, :, 0]) & (np.abs(nxy[:, :, 0] - normalized(xy, cams)[:, :, 0])
+                                               > 0), axis=-1)
+    xy = np.where(flip[..., None, None], xy[:, :, ::-1], xy)
+    cams = [Camera(name=c.name, size=c.size, K=c.K, dist=c.dist, R=init.R[i], t=init.t[i])
+            for i, c in enumerate(cams)]
+    C, T, M, _ = xy.shape
+    use = np.ones(C, bool)
+    X0 = np.stack([triangulate(nxy[:, :, m], init.R, init.t, use) for m in range(M)], axis=1)
+    say("bundle adjustment")
+    ba = bundle_adjust(cams, xy, X0, spacing_m=spacing, refine_intrinsics=refine_intrinsics)
+    nf = normalized(np.where(ba.inlier[..., None], xy, np.nan), ba.cameras)
+    Rf = np.stack([c.R for c in ba.cameras])
+    tf = np.stack([c.t for c in ba.cameras])
+    Xfree = np.stack([triangulate(nf[:, :, m], Rf, tf, use) for m in range(M)], axis=1)
+    rep = make_report(ba.cameras, xy, ba.residual_px, ba.inlier, Xfree, spacing_m=spacing)
+    return WandCalibration(rig=Rig(cameras=tuple(ba.cameras)), report=rep, ok=True,
+                           residual_px=ba.residual_px)
