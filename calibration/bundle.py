@@ -57,8 +57,35 @@ class _Problem:
         self.nI = 5 if refine_intrinsics else 0
         self.nc = 6 * (self.C - 1) + self.nI * self.C
         self.dist0 = np.stack([c.dist for c in cameras])
-        self.pairs = ([(0, self.M - 1)] + ([(0, 1), (1, 2)] if self.M == 3 else [])
-                      if spacing_m is not None else [])
+        self.pairs = []  # wand mode: rigid wand parameterisation, no length residuals
+        self.P = 5 if spacing_m is not None else 3 * self.M
+
+    def set_frames(self, X0):
+        """Per-frame tangent basis of the wand direction from the initial points (T, M, 3)."""
+        if self.spacing is None:
+            return
+        d0 = X0[:, -1] - X0[:, 0]
+        d0 /= np.linalg.norm(d0, axis=1, keepdims=True)
+        a = np.where(np.abs(d0[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+        e1 = np.cross(d0, a)
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        self.d0, self.e1, self.e2 = d0, e1, np.cross(d0, e1)
+        self.mid = (self.spacing[0] + self.spacing[-1]) / 2
+
+    def frame_points(self, q):
+        if self.spacing is None:
+            return q.reshape(self.T, self.M, 3)
+        d = self.d0 + q[:, 3:4] * self.e1 + q[:, 4:5] * self.e2
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return q[:, None, :3] + (self.spacing - self.mid)[None, :, None] * d[:, None, :]
+
+    def frame_params(self, X0):
+        if self.spacing is None:
+            return X0.reshape(self.T, -1)
+        q = np.zeros((self.T, 5))
+        q[:, :3] = X0.mean(axis=1) - 0.0
+        q[:, :3] = (X0[:, 0] + X0[:, -1]) / 2
+        return q
 
     def set_mask(self, mask):
         self.ci, self.ti, self.mi = np.nonzero(mask)
@@ -70,7 +97,7 @@ class _Problem:
         if self.refine:
             parts.append(np.array([[c.K[0, 0], c.K[0, 2], c.K[1, 2], c.dist[0], c.dist[1]]
                                    for c in self.cams]).ravel())
-        parts.append(X.ravel())
+        parts.append(self.frame_params(X).ravel())
         return np.concatenate(parts)
 
     def unpack(self, p):
@@ -89,7 +116,7 @@ class _Problem:
             cx = np.array([c.K[0, 2] for c in self.cams])
             cy = np.array([c.K[1, 2] for c in self.cams])
             dist = self.dist0
-        X = p[self.nc:].reshape(self.T, self.M, 3)
+        X = self.frame_points(p[self.nc:].reshape(self.T, self.P))
         return R, t, fx, cx, cy, dist, X
 
     def reproj(self, p):
@@ -112,7 +139,7 @@ class _Problem:
     def sparsity(self):
         n_obs = len(self.ci)
         n_res = 2 * n_obs + len(self.pairs) * self.T + (self.scale_ref is not None)
-        A = lil_matrix((n_res, self.nc + 3 * self.T * self.M), dtype=np.int8)
+        A = lil_matrix((n_res, self.nc + self.P * self.T), dtype=np.int8)
         rows = np.arange(n_obs)
         for k in range(2):
             rr = 2 * rows + k
@@ -122,8 +149,10 @@ class _Problem:
             if self.refine:
                 for j in range(5):
                     A[rr, 6 * (self.C - 1) + 5 * self.ci + j] = 1
-            base = self.nc + 3 * (self.ti * self.M + self.mi)
-            for j in range(3):
+            base = self.nc + self.P * self.ti
+            if self.spacing is None:
+                base = base + 3 * self.mi
+            for j in range(self.P if self.spacing is not None else 3):
                 A[rr, base + j] = 1
         r0 = 2 * n_obs
         for i, j in self.pairs:
@@ -155,6 +184,8 @@ def bundle_adjust(cameras: list[Camera], xy: np.ndarray, X0: np.ndarray, *, spac
     good_frame = np.all(np.isfinite(X0), axis=(1, 2))
     X0 = np.where(good_frame[:, None, None], X0, 0.0)
     mask = np.all(np.isfinite(xy), axis=3) & good_frame[None, :, None]
+    prob.set_frames(np.where(good_frame[:, None, None], X0, np.array([0, 0, 1.0])
+                             * np.arange(M)[None, :, None]))
     p = prob.pack(R, t, X0)
     limits = list(thresholds_px) + ["sigma"]
     cost = np.nan
