@@ -1,0 +1,239 @@
+"""Sub-pixel marker blob detection in IR frames.
+
+Threshold -> connected components (``cv2.connectedComponentsWithStats``) -> per component, a
+background-subtracted intensity-weighted centroid over a small window around it (background =
+median of the window's border ring). Pixel convention: docs/conventions.md [pixels] (centre of
+the top-left pixel is (0, 0), x = column, y = row); images as [pixels] (uint8 / uint16,
+right-aligned bit depth).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+
+import cv2
+import numpy as np
+
+from capture.detections import Detections2D
+
+__all__ = ["ThresholdMode", "BlobConfig", "Blobs", "auto_threshold", "detect_blobs",
+           "detect_frames", "detections_from_frames"]
+
+BIT_DEPTHS = (8, 10, 12, 16)
+MAD_TO_SIGMA = 1.4826
+
+
+class ThresholdMode(str, Enum):
+    """``FIXED``: ``BlobConfig.threshold`` is a grey level; ``AUTO``: median + k * MAD."""
+
+    FIXED = "fixed"
+    AUTO = "auto"
+
+
+@dataclass(frozen=True, kw_only=True)
+class BlobConfig:
+    """Blob detection settings.
+
+    Attributes:
+        threshold: grey level (FIXED mode) in the image's units, or the string ``"auto"``.
+        bit_depth: 8, 10, 12 or 16 ([pixels]).
+        auto_k: AUTO mode threshold = median + auto_k * 1.4826 * MAD of the image.
+        auto_min_fraction: AUTO threshold is at least this fraction of full scale above the
+            median (a noise-free image has MAD = 0).
+        min_area_px, max_area_px: accepted component area (thresholded pixels).
+        min_roundness: minor/major axis ratio (sqrt of second-moment eigenvalue ratio), 0..1.
+        window_pad_px: pixels added around each component's bounding box for the centroid.
+        mask: optional (H, W) bool, True = ignore the pixel (static reflections).
+    """
+
+    threshold: float | str = "auto"
+    bit_depth: int = 8
+    auto_k: float = 8.0
+    auto_min_fraction: float = 0.05
+    min_area_px: int = 2
+    max_area_px: int = 400
+    min_roundness: float = 0.5
+    window_pad_px: int = 2
+    mask: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        if self.bit_depth not in BIT_DEPTHS:
+            raise ValueError(f"bit_depth={self.bit_depth!r}, expected one of {BIT_DEPTHS}")
+        if isinstance(self.threshold, str):
+            if self.threshold != ThresholdMode.AUTO.value:
+                raise ValueError(f"threshold={self.threshold!r}, expected a number or 'auto'")
+        elif not 0 <= float(self.threshold) < 2 ** self.bit_depth:
+            raise ValueError(f"threshold={self.threshold!r} outside 0..{2 ** self.bit_depth - 1}")
+        if not 0 < self.min_area_px <= self.max_area_px:
+            raise ValueError(f"min_area_px={self.min_area_px}, max_area_px={self.max_area_px}")
+        if not 0 <= self.min_roundness <= 1:
+            raise ValueError(f"min_roundness={self.min_roundness}, expected 0..1")
+        if self.window_pad_px < 1:
+            raise ValueError(f"window_pad_px={self.window_pad_px}, expected >= 1")
+        if self.mask is not None:
+            m = np.asarray(self.mask)
+            if m.ndim != 2:
+                raise ValueError(f"mask.shape={m.shape}, expected (H, W)")
+
+    @property
+    def mode(self) -> ThresholdMode:
+        return ThresholdMode.AUTO if isinstance(self.threshold, str) else ThresholdMode.FIXED
+
+
+@dataclass(frozen=True, kw_only=True)
+class Blobs:
+    """Blobs of one image (N of them).
+
+    Attributes:
+        xy: (N, 2) float64 sub-pixel centres, px [pixels].
+        area_px: (N,) thresholded area.
+        peak: (N,) maximum grey level in the component.
+        roundness: (N,) minor/major axis ratio (1 = circle).
+        threshold: grey level used.
+    """
+
+    xy: np.ndarray
+    area_px: np.ndarray
+    peak: np.ndarray
+    roundness: np.ndarray
+    threshold: float = float("nan")
+
+    def __post_init__(self):
+        xy = np.asarray(self.xy, dtype=np.float64).reshape(-1, 2) if np.size(self.xy) == 0 \
+            else np.asarray(self.xy, dtype=np.float64)
+        if xy.ndim != 2 or xy.shape[1] != 2:
+            raise ValueError(f"xy.shape={xy.shape}, expected (N, 2)")
+        n = len(xy)
+        object.__setattr__(self, "xy", xy)
+        for name in ("area_px", "peak", "roundness"):
+            a = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
+            if a.shape != (n,):
+                raise ValueError(f"{name}.shape={a.shape}, expected ({n},)")
+            object.__setattr__(self, name, a)
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
+def _check_image(image, bit_depth: int) -> np.ndarray:
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"image.shape={img.shape}, expected (H, W)")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"image.dtype={img.dtype}, expected uint8 or uint16")
+    if bit_depth == 8 and img.dtype != np.uint8:
+        raise ValueError(f"bit_depth=8 but image.dtype={img.dtype}")
+    return img
+
+
+def auto_threshold(image, config: BlobConfig) -> float:
+    """Background median + k * robust sigma (1.4826 * MAD), from a subsample of the image;
+    at least ``auto_min_fraction`` of full scale above the median."""
+    img = np.asarray(image)
+    sub = img[::4, ::4].ravel()
+    if config.mask is not None:
+        sub = sub[~np.asarray(config.mask, bool)[::4, ::4].ravel()]
+    if sub.size == 0:
+        raise ValueError("auto threshold: every pixel is masked")
+    med = float(np.median(sub))
+    mad = float(np.median(np.abs(sub.astype(np.float64) - med)))
+    full = 2 ** config.bit_depth - 1
+    return med + max(config.auto_k * MAD_TO_SIGMA * mad, config.auto_min_fraction * full)
+
+
+def detect_blobs(image, config: BlobConfig) -> Blobs:
+    """Detect marker blobs in one (H, W) uint8/uint16 image; see the module docstring."""
+    img = _check_image(image, config.bit_depth)
+    H, W = img.shape
+    thr = auto_threshold(img, config) if config.mode is ThresholdMode.AUTO \
+        else float(config.threshold)
+    binary = (img > thr).astype(np.uint8)
+    if config.mask is not None:
+        m = np.asarray(config.mask, bool)
+        if m.shape != img.shape:
+            raise ValueError(f"mask.shape={m.shape}, image.shape={img.shape}")
+        binary[m] = 0
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8,
+                                                           ltype=cv2.CV_32S)
+    area = stats[1:, cv2.CC_STAT_AREA]
+    keep = np.nonzero((area >= config.min_area_px) & (area <= config.max_area_px))[0] + 1
+    pad = config.window_pad_px
+    xs, areas, peaks, rounds = [], [], [], []
+    for k in keep:
+        x0, y0, w, h = stats[k, :4]
+        c0, r0 = max(x0 - pad, 0), max(y0 - pad, 0)
+        c1, r1 = min(x0 + w + pad, W), min(y0 + h + pad, H)
+        win = img[r0:r1, c0:c1].astype(np.float64)
+        lab = labels[r0:r1, c0:c1]
+        own = lab == k
+        # roundness from the component's binary second moments
+        yy, xx = np.nonzero(own)
+        if len(xx) >= 2:
+            cov = np.cov(np.stack([xx, yy]).astype(np.float64), bias=True)
+            ev = np.linalg.eigvalsh(cov + np.eye(2) / 12.0)  # + pixel-area variance
+            rnd = float(np.sqrt(ev[0] / ev[1]))
+        else:
+            rnd = 1.0
+        if rnd < config.min_roundness:
+            continue
+        ring = np.ones_like(own)
+        ring[1:-1, 1:-1] = False
+        ring &= lab == 0
+        bg = float(np.median(win[ring])) if ring.any() else float(np.median(win[~own]))
+        wgt = win - bg
+        wgt[(lab != 0) & ~own] = 0.0  # other blobs in the window
+        if config.mask is not None:
+            wgt[m[r0:r1, c0:c1]] = 0.0
+        np.maximum(wgt, 0.0, out=wgt)
+        s = wgt.sum()
+        if not s > 0:
+            continue
+        cx = (wgt.sum(axis=0) @ np.arange(c0, c1)) / s
+        cy = (wgt.sum(axis=1) @ np.arange(r0, r1)) / s
+        xs.append((cx, cy))
+        areas.append(area[k - 1])
+        peaks.append(win[own].max())
+        rounds.append(rnd)
+    return Blobs(xy=np.array(xs, dtype=np.float64).reshape(-1, 2), area_px=np.array(areas),
+                 peak=np.array(peaks), roundness=np.array(rounds), threshold=thr)
+
+
+def detect_frames(images, config: BlobConfig, masks=None) -> list[Blobs]:
+    """Detect blobs in one frame of C cameras; ``masks``: optional list of C masks (or None)
+    overriding ``config.mask`` per camera."""
+    images = list(images)
+    if masks is not None and len(masks) != len(images):
+        raise ValueError(f"len(masks)={len(masks)} != len(images)={len(images)}")
+    out = []
+    for i, img in enumerate(images):
+        cfg = config
+        if masks is not None and masks[i] is not None:
+            from dataclasses import replace
+            cfg = replace(config, mask=masks[i])
+        out.append(detect_blobs(img, cfg))
+    return out
+
+
+def detections_from_frames(frames, camera_names, config: BlobConfig, rate_hz=None,
+                           masks=None) -> Detections2D:
+    """Detect over ``frames`` = iterable of ``(frame_index, [image per camera])`` and return
+    the flat ``Detections2D`` table (with ``area_px``)."""
+    names = tuple(camera_names)
+    fi, ci, pts, ar = [], [], [], []
+    for t, images in frames:
+        images = list(images)
+        if len(images) != len(names):
+            raise ValueError(f"frame {t}: {len(images)} images for {len(names)} cameras")
+        for c, b in enumerate(detect_frames(images, config, masks)):
+            fi.append(np.full(len(b), int(t), np.int64))
+            ci.append(np.full(len(b), c, np.int64))
+            pts.append(b.xy)
+            ar.append(b.area_px)
+    if not pts:
+        return Detections2D(frame=np.zeros(0, np.int64), camera=np.zeros(0, np.int64),
+                            xy=np.zeros((0, 2)), camera_names=names, rate_hz=rate_hz,
+                            area_px=np.zeros(0))
+    return Detections2D(frame=np.concatenate(fi), camera=np.concatenate(ci),
+                        xy=np.concatenate(pts), camera_names=names, rate_hz=rate_hz,
+                        area_px=np.concatenate(ar).astype(np.float64))
