@@ -142,24 +142,62 @@ def auto_threshold(image, config: BlobConfig) -> float:
     return med + max(config.auto_k * MAD_TO_SIGMA * mad, config.auto_min_fraction * full)
 
 
+TILE_PX = 16
+
+
 def detect_blobs(image, config: BlobConfig) -> Blobs:
-    """Detect marker blobs in one (H, W) uint8/uint16 image; see the module docstring."""
+    """Detect marker blobs in one (H, W) uint8/uint16 image; see the module docstring.
+
+    Thresholded pixels are grouped into occupied TILE_PX tiles; connected components run only
+    in the windows of connected tile groups (sparse IR frames are mostly empty)."""
     img = _check_image(image, config.bit_depth)
     H, W = img.shape
     thr = auto_threshold(img, config) if config.mode is ThresholdMode.AUTO \
         else float(config.threshold)
-    binary = (img > thr).astype(np.uint8)
+    binary = (img > thr).view(np.uint8)
+    m = None
     if config.mask is not None:
         m = np.asarray(config.mask, bool)
         if m.shape != img.shape:
             raise ValueError(f"mask.shape={m.shape}, image.shape={img.shape}")
+        binary = binary.copy()
         binary[m] = 0
+    th, tw = -(-H // TILE_PX), -(-W // TILE_PX)
+    occ = np.zeros((th * TILE_PX, tw * TILE_PX), np.uint8)
+    occ[:H, :W] = binary
+    occ = occ.reshape(th, TILE_PX, tw, TILE_PX).max(axis=(1, 3))
+    nt, tlab, tstats, _ = cv2.connectedComponentsWithStats(occ, connectivity=8,
+                                                           ltype=cv2.CV_32S)
+    pad = config.window_pad_px
+    res = ([], [], [], [])
+    for g in range(1, nt):
+        tx, ty, tww, thh = tstats[g, :4]
+        r0, c0 = max(ty * TILE_PX - pad, 0), max(tx * TILE_PX - pad, 0)
+        r1, c1 = min((ty + thh) * TILE_PX + pad, H), min((tx + tww) * TILE_PX + pad, W)
+        own_tiles = np.repeat(np.repeat(tlab[ty:ty + thh, tx:tx + tww] == g, TILE_PX, 0),
+                              TILE_PX, 1)
+        sub = np.zeros((r1 - r0, c1 - c0), np.uint8)
+        ir0, ic0 = ty * TILE_PX - r0, tx * TILE_PX - c0
+        ir1, ic1 = min(ir0 + own_tiles.shape[0], r1 - r0), min(ic0 + own_tiles.shape[1], c1 - c0)
+        sub[ir0:ir1, ic0:ic1] = binary[r0 + ir0:r0 + ir1, c0 + ic0:c0 + ic1] \
+            & own_tiles[:ir1 - ir0, :ic1 - ic0]
+        _components(img[r0:r1, c0:c1], sub, None if m is None else m[r0:r1, c0:c1],
+                    (c0, r0), config, res)
+    xs, areas, peaks, rounds = res
+    return Blobs(xy=np.array(xs, dtype=np.float64).reshape(-1, 2), area_px=np.array(areas),
+                 peak=np.array(peaks), roundness=np.array(rounds), threshold=thr)
+
+
+def _components(img, binary, m, offset, config: BlobConfig, res) -> None:
+    """Connected components of ``binary`` in the window ``img`` at ``offset`` (x0, y0);
+    appends (xy, area, peak, roundness) of accepted blobs to ``res``."""
+    H, W = img.shape
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8,
                                                            ltype=cv2.CV_32S)
     area = stats[1:, cv2.CC_STAT_AREA]
     keep = np.nonzero((area >= config.min_area_px) & (area <= config.max_area_px))[0] + 1
     pad = config.window_pad_px
-    xs, areas, peaks, rounds = [], [], [], []
+    xs, areas, peaks, rounds = res
     for k in keep:
         x0, y0, w, h = stats[k, :4]
         c0, r0 = max(x0 - pad, 0), max(y0 - pad, 0)
@@ -167,14 +205,13 @@ def detect_blobs(image, config: BlobConfig) -> Blobs:
         win = img[r0:r1, c0:c1].astype(np.float64)
         lab = labels[r0:r1, c0:c1]
         own = lab == k
-        # roundness from the component's binary second moments
+        # roundness from the component's binary second moments (+ 1/12: pixel extent)
         yy, xx = np.nonzero(own)
-        if len(xx) >= 2:
-            cov = np.cov(np.stack([xx, yy]).astype(np.float64), bias=True)
-            ev = np.linalg.eigvalsh(cov + np.eye(2) / 12.0)  # + pixel-area variance
-            rnd = float(np.sqrt(ev[0] / ev[1]))
-        else:
-            rnd = 1.0
+        dx, dy = xx - xx.mean(), yy - yy.mean()
+        sxx, syy, sxy = dx @ dx / len(xx) + 1 / 12, dy @ dy / len(xx) + 1 / 12, dx @ dy / len(xx)
+        tr2, det = 0.5 * (sxx + syy), sxx * syy - sxy * sxy
+        disc = np.sqrt(max(tr2 * tr2 - det, 0.0))
+        rnd = float(np.sqrt(max(tr2 - disc, 0.0) / (tr2 + disc)))
         if rnd < config.min_roundness:
             continue
         ring = np.ones_like(own)
@@ -183,20 +220,17 @@ def detect_blobs(image, config: BlobConfig) -> Blobs:
         bg = float(np.median(win[ring])) if ring.any() else float(np.median(win[~own]))
         wgt = win - bg
         wgt[(lab != 0) & ~own] = 0.0  # other blobs in the window
-        if config.mask is not None:
+        if m is not None:
             wgt[m[r0:r1, c0:c1]] = 0.0
         np.maximum(wgt, 0.0, out=wgt)
         s = wgt.sum()
         if not s > 0:
             continue
-        cx = (wgt.sum(axis=0) @ np.arange(c0, c1)) / s
-        cy = (wgt.sum(axis=1) @ np.arange(r0, r1)) / s
-        xs.append((cx, cy))
+        xs.append(((wgt.sum(axis=0) @ np.arange(c0, c1)) / s + offset[0],
+                   (wgt.sum(axis=1) @ np.arange(r0, r1)) / s + offset[1]))
         areas.append(area[k - 1])
         peaks.append(win[own].max())
         rounds.append(rnd)
-    return Blobs(xy=np.array(xs, dtype=np.float64).reshape(-1, 2), area_px=np.array(areas),
-                 peak=np.array(peaks), roundness=np.array(rounds), threshold=thr)
 
 
 def detect_frames(images, config: BlobConfig, masks=None) -> list[Blobs]:
