@@ -88,7 +88,7 @@ def make_report(cameras, xy, residual_px, inlier, X, spacing_m=None, grid=(8, 8)
         o, d = cam.unproject(p)
         v = X[inlier[c]] - o
         rays.append(np.linalg.norm(v - (v * d).sum(1, keepdims=True) * d, axis=1))
-    ray = float(np.mean(np.concatenate(rays)) * 1000) if rays else np.nan
+    ray = float(np.nanmean(np.concatenate(rays)) * 1000) if rays else np.nan
     mean_err = float(np.nanmean(np.sqrt(e2[inlier])))
     wm = wsd = ws = np.nan
     if spacing_m is not None:
