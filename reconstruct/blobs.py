@@ -163,9 +163,12 @@ def detect_blobs(image, config: BlobConfig) -> Blobs:
         binary = binary.copy()
         binary[m] = 0
     th, tw = -(-H // TILE_PX), -(-W // TILE_PX)
-    occ = np.zeros((th * TILE_PX, tw * TILE_PX), np.uint8)
-    occ[:H, :W] = binary
-    occ = occ.reshape(th, TILE_PX, tw, TILE_PX).max(axis=(1, 3))
+    # tile occupancy: area-average of a 0/255 image is > 0 iff any pixel of the tile is set
+    occ = cv2.threshold(binary, 0, 255, cv2.THRESH_BINARY)[1]
+    if (th * TILE_PX, tw * TILE_PX) != (H, W):
+        occ = cv2.copyMakeBorder(occ, 0, th * TILE_PX - H, 0, tw * TILE_PX - W,
+                                 cv2.BORDER_CONSTANT, value=0)
+    occ = (cv2.resize(occ, (tw, th), interpolation=cv2.INTER_AREA) > 0).view(np.uint8)
     nt, tlab, tstats, _ = cv2.connectedComponentsWithStats(occ, connectivity=8,
                                                            ltype=cv2.CV_32S)
     pad = config.window_pad_px
@@ -207,7 +210,7 @@ def _components(img, binary, m, offset, config: BlobConfig, res) -> None:
         own = lab == k
         # roundness from the component's binary second moments (+ 1/12: pixel extent)
         yy, xx = np.nonzero(own)
-        dx, dy = xx - xx.mean(), yy - yy.mean()
+        dx, dy = xx - xx.sum() / len(xx), yy - yy.sum() / len(yy)
         sxx, syy, sxy = dx @ dx / len(xx) + 1 / 12, dy @ dy / len(xx) + 1 / 12, dx @ dy / len(xx)
         tr2, det = 0.5 * (sxx + syy), sxx * syy - sxy * sxy
         disc = np.sqrt(max(tr2 * tr2 - det, 0.0))
