@@ -191,6 +191,12 @@ def detect_blobs(image, config: BlobConfig) -> Blobs:
                  peak=np.array(peaks), roundness=np.array(rounds), threshold=thr)
 
 
+def _median(v: np.ndarray) -> float:
+    """Upper median (no interpolation), cheaper than np.median on small arrays."""
+    k = len(v) // 2
+    return float(np.partition(v, k)[k])
+
+
 def _components(img, binary, m, offset, config: BlobConfig, res) -> None:
     """Connected components of ``binary`` in the window ``img`` at ``offset`` (x0, y0);
     appends (xy, area, peak, roundness) of accepted blobs to ``res``."""
@@ -220,7 +226,7 @@ def _components(img, binary, m, offset, config: BlobConfig, res) -> None:
         ring = np.ones_like(own)
         ring[1:-1, 1:-1] = False
         ring &= lab == 0
-        bg = float(np.median(win[ring])) if ring.any() else float(np.median(win[~own]))
+        bg = _median(win[ring]) if ring.any() else _median(win[~own])
         wgt = win - bg
         wgt[(lab != 0) & ~own] = 0.0  # other blobs in the window
         if m is not None:
