@@ -14,14 +14,25 @@ from enum import Enum
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.special import erf
 
 from capture.detections import Detections2D
 
-__all__ = ["ThresholdMode", "BlobConfig", "Blobs", "auto_threshold", "detect_blobs",
+__all__ = ["Refine", "ThresholdMode", "BlobConfig", "Blobs", "auto_threshold", "detect_blobs",
            "detect_frames", "detections_from_frames"]
 
 BIT_DEPTHS = (8, 10, 12, 16)
 MAD_TO_SIGMA = 1.4826
+
+
+class Refine(str, Enum):
+    """Centroid method: ``MOMENTS`` (background-subtracted intensity-weighted centroid) or
+    ``GAUSSIAN`` (moments, then least-squares fit of a pixel-integrated 2D Gaussian + constant
+    background over the same window; ~2x lower noise on Gaussian-like blobs, ~10x slower)."""
+
+    MOMENTS = "moments"
+    GAUSSIAN = "gaussian"
 
 
 class ThresholdMode(str, Enum):
@@ -45,6 +56,7 @@ class BlobConfig:
         min_roundness: minor/major axis ratio (sqrt of second-moment eigenvalue ratio), 0..1.
         window_pad_px: pixels added around each component's bounding box for the centroid.
         mask: optional (H, W) bool, True = ignore the pixel (static reflections).
+        refine: ``Refine.MOMENTS`` (default) or ``Refine.GAUSSIAN``.
     """
 
     threshold: float | str = "auto"
@@ -56,8 +68,10 @@ class BlobConfig:
     min_roundness: float = 0.5
     window_pad_px: int = 2
     mask: np.ndarray | None = field(default=None, repr=False)
+    refine: Refine = Refine.MOMENTS
 
     def __post_init__(self):
+        object.__setattr__(self, "refine", Refine(self.refine))
         if self.bit_depth not in BIT_DEPTHS:
             raise ValueError(f"bit_depth={self.bit_depth!r}, expected one of {BIT_DEPTHS}")
         if isinstance(self.threshold, str):
@@ -197,6 +211,34 @@ def _median(v: np.ndarray) -> float:
     return float(np.partition(v, k)[k])
 
 
+def _gauss_refine(win, keep_px, c0, r0, cx, cy, total, bg):
+    """Least-squares fit of amplitude * pixel-integrated Gaussian + background over the
+    window pixels ``keep_px``; falls back to (cx, cy) when the fit fails or moves > 1 px."""
+    h, w = win.shape
+    ex = np.arange(c0, c0 + w + 1) - 0.5
+    ey = np.arange(r0, r0 + h + 1) - 0.5
+    obs = win[keep_px]
+
+    def resid(p):
+        a, x, y, sg, b = p
+        k = 1.0 / (np.sqrt(2.0) * sg)
+        gx = np.diff(0.5 * erf((ex - x) * k))
+        gy = np.diff(0.5 * erf((ey - y) * k))
+        return (a * np.outer(gy, gx) + b)[keep_px] - obs
+
+    sg0 = max(np.sqrt(total / max(win.max() - bg, 1e-9) / (2 * np.pi)), 0.3)
+    try:
+        sol = least_squares(resid, [total, cx, cy, sg0, bg], x_scale="jac",
+                            bounds=([0, cx - 2, cy - 2, 0.2, -np.inf],
+                                    [np.inf, cx + 2, cy + 2, 20.0, np.inf]))
+    except ValueError:
+        return cx, cy
+    x, y = sol.x[1], sol.x[2]
+    if not sol.success or np.hypot(x - cx, y - cy) > 1.0:
+        return cx, cy
+    return float(x), float(y)
+
+
 def _components(img, binary, m, offset, config: BlobConfig, res) -> None:
     """Connected components of ``binary`` in the window ``img`` at ``offset`` (x0, y0);
     appends (xy, area, peak, roundness) of accepted blobs to ``res``."""
@@ -235,8 +277,12 @@ def _components(img, binary, m, offset, config: BlobConfig, res) -> None:
         s = wgt.sum()
         if not s > 0:
             continue
-        xs.append(((wgt.sum(axis=0) @ np.arange(c0, c1)) / s + offset[0],
-                   (wgt.sum(axis=1) @ np.arange(r0, r1)) / s + offset[1]))
+        cx = (wgt.sum(axis=0) @ np.arange(c0, c1)) / s
+        cy = (wgt.sum(axis=1) @ np.arange(r0, r1)) / s
+        if config.refine is Refine.GAUSSIAN:
+            keep_px = ((lab == 0) | own) if m is None else (((lab == 0) | own) & ~m[r0:r1, c0:c1])
+            cx, cy = _gauss_refine(win, keep_px, c0, r0, cx, cy, s, bg)
+        xs.append((cx + offset[0], cy + offset[1]))
         areas.append(area[k - 1])
         peaks.append(win[own].max())
         rounds.append(rnd)

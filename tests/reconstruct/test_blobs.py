@@ -134,3 +134,14 @@ def test_hw_sim_render():
         det = detect_blobs(img, BlobConfig(bit_depth=bit_depth))
         vis = tr.visible
         assert match_rms(det, tr.xy[vis]) <= NOISY_RMS_PX
+
+
+@pytest.mark.parametrize("diameter_px", [3.0, 8.0])
+def test_gaussian_refine_beats_moments(diameter_px):
+    truth = grid_truth(5, 20, rng=7)
+    img = render_blobs((120, 120), truth, sigma_of_diameter(diameter_px), bit_depth=10, rng=8)
+    rms_m = match_rms(detect_blobs(img, BlobConfig(bit_depth=10)), truth)
+    rms_g = match_rms(detect_blobs(img, BlobConfig(bit_depth=10, refine="gaussian")), truth)
+    print(f"d={diameter_px}px 10-bit: moments {rms_m:.4f} px, gaussian {rms_g:.4f} px")
+    assert rms_g <= NOISY_RMS_PX
+    assert rms_g < rms_m
