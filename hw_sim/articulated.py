@@ -230,12 +230,33 @@ def humanoid(rng=None) -> Figure:
     return _build(segs, g)
 
 
+def _seg_dist(p: np.ndarray, cap: np.ndarray) -> float:
+    """Distance from point p to the capsule axis segment cap (2, 3)."""
+    a, b = cap
+    ab = b - a
+    u = np.clip(np.dot(p - a, ab) / max(np.dot(ab, ab), 1e-12), 0.0, 1.0)
+    return float(np.linalg.norm(p - a - u * ab))
+
+
 def _build(segs, g: np.random.Generator) -> Figure:
+    # rest-pose origins (all segment frames parallel to the world)
+    origin = []
+    for name, parent, off, *_ in segs:
+        origin.append(off if parent < 0 else origin[parent] + off)
+    caps_rest = [origin[s] + x[5] for s, x in enumerate(segs)]
     mseg, moff, mnames = [], [], []
     for s, (name, _, _, _, _, cap, r, nm) in enumerate(segs):
         fr = np.linspace(0.2, 0.9, nm) + g.uniform(-0.05, 0.05, nm)
         ang = np.arange(nm) * (2 * np.pi / max(nm, 3)) + g.uniform(-0.4, 0.4, nm) + 0.3 * s
         off = _surface_markers(cap, r, fr, ang)
+        for k in range(nm):  # keep markers outside the other segments' bodies at rest
+            for _ in range(60):
+                p = origin[s] + off[k]
+                if all(_seg_dist(p, caps_rest[o]) > segs[o][6] + MARKER_STANDOFF_M
+                       for o in range(len(segs)) if o != s):
+                    break
+                off[k] = _surface_markers(cap, r, g.uniform(0.1, 0.95, 1),
+                                          g.uniform(0, 2 * np.pi, 1))[0]
         mseg += [s] * nm
         moff.append(off)
         mnames += [f"{name}_{k + 1}" for k in range(nm)]
