@@ -209,8 +209,9 @@ def figure(n_frames: int = 200, rate_hz: float = 100.0, rng=None, *,
     Its body-segment capsules are the scene's occluders, so markers are hidden by the body.
     ``rom_deg`` (None: the animation's default) scales the joint range of motion.
     """
-    from hw_sim import articulated
+    import importlib
 
+    articulated = importlib.import_module("hw_sim.articulated")
     g = _rng(rng)
     fig = articulated.humanoid(g)
     kw = {} if rom_deg is None else {"rom_deg": rom_deg}
