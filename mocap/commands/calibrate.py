@@ -2,7 +2,8 @@
 
 INPUT is a 2D observation CSV (``frame,camera,x,y``) or a recording folder (its detections).
 Writes the calibration TOML (``calibration.rig_io.save_rig``) and a report (.txt + .png)
-beside it. ``intrinsics`` and ``world`` subcommands are not implemented yet.
+beside it. ``mocap calibrate intrinsics IMAGES --board chessboard:COLSxROWS:SQUARE_MM``
+calibrates one camera. ChArUco boards and a ``world`` subcommand are not implemented yet.
 """
 from __future__ import annotations
 
@@ -59,6 +60,48 @@ def _wand(args) -> int:
     return 0
 
 
+def _parse_board(spec: str):
+    parts = spec.split(":")
+    if len(parts) != 3 or parts[0] != "chessboard":
+        raise ValueError(f"--board {spec!r}: expected chessboard:COLSxROWS:SQUARE_MM "
+                         "(inner corners; charuco is not implemented yet)")
+    cols, rows = (int(v) for v in parts[1].lower().split("x"))
+    return cols, rows, float(parts[2]) / 1000.0
+
+
+def _intrinsics(args) -> int:
+    import cv2
+
+    from calibration.camera import Rig
+    from calibration.intrinsics import calibrate_chessboard
+    try:
+        cols, rows, sq = _parse_board(args.board)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    imgs = []
+    for f in args.images:
+        im = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        if im is None:
+            print(f"error: cannot read image {f}", file=sys.stderr)
+            return 2
+        imgs.append(im)
+    try:
+        res = calibrate_chessboard(imgs, cols=cols, rows=rows, square_m=sq, name=args.name)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    if not res.ok:
+        print(f"calibration failed: {res.reason}", file=sys.stderr)
+        return 1
+    for f, u, e in zip(args.images, res.used, res.per_view_rms_px):
+        print(f"{f}: {'used' if u else 'rejected'} rms {e:.3f} px")
+    print(f"overall rms {res.rms_px:.3f} px")
+    save_rig(Rig(cameras=(res.camera,)), args.output)
+    print(f"wrote {args.output}")
+    return 0
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("calibrate", help="calibrate cameras (wand)")
     sub = p.add_subparsers(dest="calibrate_cmd", required=True)
@@ -73,3 +116,9 @@ def register(subparsers) -> None:
     w.add_argument("--seed", type=int, default=0)
     w.add_argument("-o", "--output", required=True, help="calibration TOML to write")
     w.set_defaults(func=_wand)
+    i = sub.add_parser("intrinsics", help="intrinsics of one camera from chessboard images")
+    i.add_argument("images", nargs="+")
+    i.add_argument("--board", required=True, help="chessboard:COLSxROWS:SQUARE_MM (inner corners)")
+    i.add_argument("--name", default="cam_1", help="camera name in the TOML")
+    i.add_argument("-o", "--output", required=True)
+    i.set_defaults(func=_intrinsics)

@@ -32,3 +32,21 @@ def test_cli_wand_needs_intrinsics(tmp_path):
     ob = observe(rig, wand(20, rng=2), rng=3, noise_px=0.0)
     csv = write_detections_csv(ob.detections, tmp_path / "wand.csv")
     assert main(["calibrate", "wand", str(csv), "-o", str(tmp_path / "c.toml")]) == 2
+
+
+def test_cli_intrinsics_chessboard(tmp_path):
+    import cv2
+
+    from tests.calibration.test_intrinsics import COLS, ROWS, SQUARE_M, _views
+    files = []
+    for k, im in enumerate(_views()):
+        f = tmp_path / f"v{k}.png"
+        cv2.imwrite(str(f), im)
+        files.append(str(f))
+    out = tmp_path / "intr.toml"
+    board = f"chessboard:{COLS}x{ROWS}:{SQUARE_M * 1000}"
+    assert main(["calibrate", "intrinsics", *files, "--board", board, "-o", str(out)]) == 0
+    cam = load_rig(out)[0]
+    assert abs(cam.K[0, 0] / 600.0 - 1) < 0.01
+    assert main(["calibrate", "intrinsics", *files, "--board", "chessboard:10x6:30",
+                 "-o", str(out)]) == 1
