@@ -1,0 +1,88 @@
+"""skeleton pipeline on simulated random trees: segments, topology, joint centres vs truth."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hw_sim.articulated import animate, random_tree
+from skeleton.pipeline import solve_skeleton
+from skeleton.rigid import kabsch
+
+EXACT_JOINT_M = 1e-6       # noise-free joint centre (target 0.5 mm; measured ~1e-12)
+NOISY_JOINT_M = 3e-3       # 1 mm marker noise (median)
+NOISE_M = 1e-3
+
+
+def _truth_map(fig, res):
+    """truth segment -> estimated segment (None if the clustering split/merged it)."""
+    m = []
+    for s in range(fig.n_segments):
+        lab = set(res.labels[fig.marker_segment == s].tolist())
+        if len(lab) != 1:
+            return None
+        m.append(lab.pop())
+    return np.array(m) if len(set(m)) == fig.n_segments == res.n_segments else None
+
+
+def _joint_errors(fig, mo, res, segmap):
+    errs = []
+    for s in range(1, fig.n_segments):
+        e, ep = segmap[s], segmap[fig.parents[s]]
+        j = res.joints[e] if res.parents[e] == ep else res.joints[ep]
+        d = j.world - mo.joint_centres[:, s]
+        if fig.joint_types[s] == "hinge":
+            ax = np.einsum("tij,j->ti", mo.world_from_segment_R[:, s], fig.hinge_axes[s])
+            d = d - (d * ax).sum(1, keepdims=True) * ax
+        errs.append(np.nanmedian(np.linalg.norm(d, axis=1)))
+    return np.array(errs)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_random_tree_topology_and_joints(seed):
+    g = np.random.default_rng(seed)
+    fig = random_tree(int(g.integers(5, 9)), (3, 4), rng=seed)
+    mo = animate(fig, 300, rng=seed, rom_deg=60.0)
+    res = solve_skeleton(mo.markers, mo.rate_hz, rng=0)
+    segmap = _truth_map(fig, res)
+    assert segmap is not None
+    truth = {tuple(sorted((segmap[s], segmap[fig.parents[s]]))) for s in range(1, fig.n_segments)}
+    est = {tuple(sorted((s, int(res.parents[s])))) for s in range(res.n_segments)
+           if res.parents[s] >= 0}
+    assert est == truth
+    assert _joint_errors(fig, mo, res, segmap).max() < EXACT_JOINT_M
+
+
+def test_two_to_four_markers_per_segment():
+    """The acceptance setting: 2-4 markers per segment (two-marker segments included)."""
+    fig = random_tree(6, (2, 4), rng=11)
+    assert (np.bincount(fig.marker_segment) == 2).sum() >= 1
+    mo = animate(fig, 200, rng=11, rom_deg=60.0)
+    res = solve_skeleton(mo.markers, mo.rate_hz, rng=0)
+    segmap = _truth_map(fig, res)
+    assert segmap is not None
+    truth = {tuple(sorted((segmap[s], segmap[fig.parents[s]]))) for s in range(1, fig.n_segments)}
+    est = {tuple(sorted((s, int(res.parents[s])))) for s in range(res.n_segments)
+           if res.parents[s] >= 0}
+    assert est == truth
+
+
+def test_noisy_joint_centres():
+    fig = random_tree(6, (3, 4), rng=21)
+    mo = animate(fig, 600, rng=21, rom_deg=60.0)
+    noisy = mo.markers + np.random.default_rng(5).normal(0, NOISE_M, mo.markers.shape)
+    res = solve_skeleton(noisy, mo.rate_hz, n_segments=fig.n_segments, rng=0)
+    segmap = _truth_map(fig, res)
+    assert segmap is not None
+    assert np.median(_joint_errors(fig, mo, res, segmap)) < NOISY_JOINT_M
+
+
+def test_kabsch_proper_rotation():
+    g = np.random.default_rng(0)
+    P = g.normal(size=(6, 3))
+    from scipy.spatial.transform import Rotation
+    R = Rotation.random(4, random_state=1).as_matrix()
+    src = np.einsum("tij,nj->tni", R, P) + g.normal(size=(4, 1, 3))
+    Re, te = kabsch(src, P)
+    back = np.einsum("tij,tnj->tni", Re, src) + te[:, None]
+    assert np.abs(back - P).max() < 1e-9
+    assert np.allclose(np.linalg.det(Re), 1.0)
