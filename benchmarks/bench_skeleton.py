@@ -1,0 +1,74 @@
+"""Skeleton solver on random simulated figures: topology success, joint-centre error, time.
+
+Usage: python benchmarks/bench_skeleton.py [n_figures=50] [n_frames=600]
+Prints topology-exact count (target >= 49/50), median joint-centre error (noise-free and
+with 1 mm noise; hinges measured perpendicular to the axis) and seconds per figure; then
+the thesis' largest case (31 markers / 13 segments / 1500 frames) against its ~70 s.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from hw_sim.articulated import animate, random_tree
+from skeleton.pipeline import solve_skeleton
+
+THESIS_LARGEST_S = 70.0
+
+
+def run(fig, mo, noise_m, seed):
+    tr = mo.markers + np.random.default_rng(seed).normal(0, noise_m, mo.markers.shape)
+    t0 = time.perf_counter()
+    res = solve_skeleton(tr, mo.rate_hz, rng=0)
+    dt = time.perf_counter() - t0
+    segmap = []
+    for s in range(fig.n_segments):
+        lab = set(res.labels[fig.marker_segment == s].tolist())
+        segmap.append(lab.pop() if len(lab) == 1 else -1)
+    if -1 in segmap or len(set(segmap)) != fig.n_segments or res.n_segments != fig.n_segments:
+        return False, [], dt
+    truth = {tuple(sorted((segmap[s], segmap[fig.parents[s]]))) for s in range(1, fig.n_segments)}
+    est = {tuple(sorted((s, int(res.parents[s])))) for s in range(res.n_segments)
+           if res.parents[s] >= 0}
+    errs = []
+    if est == truth:
+        for s in range(1, fig.n_segments):
+            e, ep = segmap[s], segmap[fig.parents[s]]
+            j = res.joints[e] if res.parents[e] == ep else res.joints[ep]
+            d = j.world - mo.joint_centres[:, s]
+            if fig.joint_types[s] == "hinge":
+                ax = np.einsum("tij,j->ti", mo.world_from_segment_R[:, s], fig.hinge_axes[s])
+                d = d - (d * ax).sum(1, keepdims=True) * ax
+            errs.append(np.nanmedian(np.linalg.norm(d, axis=1)))
+    return est == truth, errs, dt
+
+
+def main(n_fig=50, n_frames=600):
+    for noise in (0.0, 1e-3):
+        ok, errs, times = 0, [], []
+        for k in range(n_fig):
+            g = np.random.default_rng(1000 + k)
+            fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
+            mo = animate(fig, n_frames, rng=g, rom_deg=float(g.uniform(45, 90)))
+            good, e, dt = run(fig, mo, noise, k)
+            ok += good
+            errs += e
+            times.append(dt)
+        print(f"noise {noise * 1e3:.0f} mm: topology exact {ok}/{n_fig}; median joint error "
+              f"{np.median(errs) * 1e3 if errs else float('nan'):.4f} mm; "
+              f"{np.mean(times):.2f} s/figure")
+    g = np.random.default_rng(7)
+    while True:
+        fig = random_tree(13, (2, 3), rng=g)
+        if fig.n_markers == 31:
+            break
+    mo = animate(fig, 1500, rng=g)
+    good, e, dt = run(fig, mo, 0.0, 0)
+    print(f"largest case 31 markers/13 segments/1500 frames: {dt:.2f} s vs thesis "
+          f"{THESIS_LARGEST_S:.0f} s (ratio {dt / THESIS_LARGEST_S:.3f}); topology {good}")
+
+
+if __name__ == "__main__":
+    main(*(int(a) for a in sys.argv[1:]))
