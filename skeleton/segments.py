@@ -15,7 +15,7 @@ from sklearn.cluster import SpectralClustering
 
 __all__ = ["Segmentation", "distance_sd", "segment_markers"]
 
-SCALE_FLOOR_M = 5e-3   # local scale floor (noise-free data gives sd = 0; 1 mm noise ~ 1.4 mm sd)
+SCALE_FLOOR_M = 1e-3   # local scale floor (noise-free data gives sd = 0)
 LOCAL_SCALE_K = 3      # neighbour used for the local scale
 
 
