@@ -1,0 +1,212 @@
+"""Marker identity: merge trajectory fragments into physical markers (the thesis' Marker Sets).
+
+``merge_fragments(trajectories (T, F, 3), min_frames=10, max_distance_m=0.02,
+n_markers=None, rng=None) -> MarkerSets``. A tracker starts a new id whenever it loses a
+marker (occlusion), so one physical marker arrives as several fragments, each a column with
+NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brien & Forsyth
+2005):
+
+1. fragments seen in fewer than ``min_frames`` frames are dropped (ghosts, flicker);
+2. the distance between two fragments that are never seen in the same frame is the minimum,
+   over sampled frame pairs (a from one, b from the other), of the distance between the
+   first at a and the second at b after aligning the pose at b onto the pose at a
+   (Horn/Kabsch). Overlapping fragments cannot be one marker: their distance is infinite.
+   Where the thesis aligns the whole body, the alignment here uses the ``neighbours``
+   fragments that are most rigid with respect to both fragments (smallest larger sd of
+   distance over either's life: a short fragment finds everything rigid), which makes the
+   alignment exact on an articulated figure;
+3. clustering: constrained single linkage: pairs are merged in order of distance while the
+   distance is below ``max_distance_m``, never merging clusters seen in the same frame
+   (the cannot-link constraint a spectral clustering cannot guarantee), and never below the
+   thesis' lower bound on the number of markers (the most fragments seen in one frame).
+
+Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import warnings
+
+import numpy as np
+
+__all__ = ["MarkerSets", "merge_fragments"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class MarkerSets:
+    """positions (T, M, 3) m merged markers (ordered by first appearance); groups: M tuples
+    of the input fragment columns merged into each marker (in time order); dropped: input
+    columns dropped as too short; n_min: the most fragments seen in one frame (the lower
+    bound on M); distance (F, F) m pose-aligned fragment distances (inf: overlapping,
+    NaN: dropped or no partners to align on)."""
+
+    positions: np.ndarray
+    groups: tuple[tuple[int, ...], ...]
+    dropped: tuple[int, ...]
+    n_min: int
+    distance: np.ndarray
+
+    def __post_init__(self):
+        p = np.asarray(self.positions)
+        if p.ndim != 3 or p.shape[2] != 3 or p.shape[1] != len(self.groups):
+            raise ValueError(f"positions.shape={p.shape}, expected (T, {len(self.groups)}, 3)")
+
+    @property
+    def n_markers(self) -> int:
+        return len(self.groups)
+
+
+def _kabsch_batch(src, dst):
+    """(R, t) per batch with dst ~ R src + t, src/dst (B, K, 3)."""
+    cs, cd = src.mean(1), dst.mean(1)
+    H = np.einsum("bki,bkj->bij", dst - cd[:, None], src - cs[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(U @ Vt))
+    U[:, :, 2] *= d[:, None]
+    R = U @ Vt
+    return R, cd - np.einsum("bij,bj->bi", R, cs)
+
+
+def _samples(frames: np.ndarray, n: int) -> np.ndarray:
+    """Up to n frames of a fragment: both ends (nearest the gaps) and evenly in between."""
+    if frames.size <= n:
+        return frames
+    k = max(1, n // 4)
+    mid = frames[np.linspace(k, frames.size - 1 - k, n - 2 * k).astype(int)]
+    return np.unique(np.concatenate([frames[:k], mid, frames[-k:]]))
+
+
+def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 0.02,
+                    n_markers: int | None = None, samples: int = 12, neighbours: int = 3,
+                    max_passes: int = 4, loose_distance_m: float = 0.1,
+                    rng=None) -> MarkerSets:
+    """Merge fragment columns of ``trajectories`` (T, F, 3) into physical markers.
+
+    ``n_markers`` (optional) is the known number of physical markers: merging continues
+    to it (below ``max_distance_m`` only) instead of stopping at the frame-count bound.
+    The merge is repeated on its own output (at most ``max_passes`` times) while it still
+    merges: merged neighbours span the gaps, so the next pass aligns poses on better
+    partners. A last pass then keeps merging, in order of distance up to
+    ``loose_distance_m``, while there are more markers than the thesis' bound (the most
+    fragments seen in one frame): fast motion across a gap in which every same-segment
+    partner was hidden too leaves only partners across a joint to align on.
+    ``rng`` is unused (the method is deterministic) and accepted for the pipeline's
+    uniform signature."""
+    X = np.asarray(trajectories, np.float64)
+    if X.ndim != 3 or X.shape[2] != 3:
+        raise ValueError(f"trajectories.shape={X.shape}, expected (T, F, 3)")
+    if min_frames < 1:
+        raise ValueError(f"min_frames={min_frames!r}, expected >= 1")
+    if not max_distance_m > 0:
+        raise ValueError(f"max_distance_m={max_distance_m!r}, expected > 0")
+    if neighbours < 3:
+        raise ValueError(f"neighbours={neighbours!r}, expected >= 3 (a pose needs 3 points)")
+    first = _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours)
+    res = first
+    for k in range(max_passes):
+        last = k == max_passes - 1
+        nxt = _merge_pass(res.positions, 1, loose_distance_m if last else max_distance_m,
+                          n_markers, samples, neighbours)
+        if nxt.n_markers == res.n_markers:
+            if last or nxt.n_markers <= first.n_min:
+                break
+            max_passes = k + 2          # converged: one loose pass next
+            continue
+        res = MarkerSets(positions=nxt.positions, n_min=first.n_min, dropped=first.dropped,
+                         distance=first.distance,
+                         groups=tuple(tuple(sorted((f for g in grp for f in res.groups[g]),
+                                                   key=lambda f: _first_seen(X, f)))
+                                      for grp in nxt.groups))
+    return res
+
+
+def _first_seen(X, f) -> int:
+    return int(np.flatnonzero(~np.isnan(X[:, f, 0]))[0])
+
+
+def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours) -> MarkerSets:
+    T, F = X.shape[:2]
+    vis = ~np.isnan(X).any(2)
+    keep = np.flatnonzero(vis.sum(0) >= min_frames)
+    dropped = tuple(int(f) for f in np.setdiff1d(np.arange(F), keep))
+    D = np.full((F, F), np.nan)
+    if keep.size == 0:
+        return MarkerSets(positions=np.full((T, 0, 3), np.nan), groups=(), dropped=dropped,
+                          n_min=0, distance=D)
+    Xk, vk = X[:, keep], vis[:, keep]
+    K = keep.size
+    n_min = int(vk.sum(1).max())
+    lower = max(n_min, int(n_markers) if n_markers is not None else 0)
+    # rigidity of every fragment pair (sd of distance over common frames, >= min_frames)
+    common = vk.T.astype(np.int64) @ vk.astype(np.int64)                   # (K, K) frames
+    sd = np.full((K, K), np.inf)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for i in range(K):
+            d = np.linalg.norm(Xk - Xk[:, i:i + 1], axis=2)
+            sd[i] = np.nanstd(d, axis=0)
+    sd[(common < min_frames) | np.isnan(sd)] = np.inf
+    np.fill_diagonal(sd, np.inf)
+    overlap = common > 0
+    frames = [np.flatnonzero(vk[:, i]) for i in range(K)]
+    samp = [_samples(f, samples) for f in frames]
+    Dk = np.where(overlap, np.inf, np.nan)        # NaN: no common partners to align on
+    for i in range(K):
+        for j in range(i + 1, K):
+            if overlap[i, j]:
+                continue
+            # partners rigid to both fragments (a short fragment finds everything rigid)
+            both_sd = np.maximum(sd[i], sd[j])
+            rank = np.argsort(both_sd, kind="stable")
+            rank = rank[np.isfinite(both_sd[rank])]
+            if rank.size < 3:
+                continue
+            a = np.repeat(samp[i], samp[j].size)
+            b = np.tile(samp[j], samp[i].size)
+            both = vk[a][:, rank] & vk[b][:, rank]                           # (P, R)
+            enough = both.sum(1) >= 3
+            if not enough.any():
+                continue
+            a, b, both = a[enough], b[enough], both[enough]
+            # the first `neighbours` most rigid partners seen at a and at b
+            pos = np.cumsum(both, 1)
+            pick = both & (pos <= neighbours)
+            nk = np.minimum(both.sum(1), neighbours)
+            best = np.inf
+            for n in np.unique(nk):
+                sel = nk == n
+                cols = np.nonzero(pick[sel])[1].reshape(-1, n)
+                src = Xk[b[sel, None], rank[cols]]
+                dst = Xk[a[sel, None], rank[cols]]
+                R, t = _kabsch_batch(src, dst)
+                mj = np.einsum("bij,bj->bi", R, Xk[b[sel], j]) + t
+                best = min(best, float(np.linalg.norm(mj - Xk[a[sel], i], axis=1).min()))
+            Dk[i, j] = best
+    Dk = np.fmin(Dk, Dk.T)
+    D[np.ix_(keep, keep)] = Dk
+    # constrained single linkage
+    cluster = list(range(K))
+    members = {c: [c] for c in range(K)}
+    seen = {c: vk[:, c].copy() for c in range(K)}
+    iu, ju = np.triu_indices(K, 1)
+    cand = np.flatnonzero(Dk[iu, ju] <= max_distance_m)
+    for e in cand[np.argsort(Dk[iu[cand], ju[cand]], kind="stable")]:
+        if len(members) <= lower:
+            break
+        ci, cj = cluster[iu[e]], cluster[ju[e]]
+        if ci == cj or (seen[ci] & seen[cj]).any():
+            continue
+        for m in members[cj]:
+            cluster[m] = ci
+        members[ci] += members.pop(cj)
+        seen[ci] |= seen.pop(cj)
+    groups = sorted((sorted(ms, key=lambda m: frames[m][0]) for ms in members.values()),
+                    key=lambda ms: frames[ms[0]][0])
+    out = np.full((T, len(groups), 3), np.nan)
+    for g, ms in enumerate(groups):
+        for m in ms:
+            out[vk[:, m], g] = Xk[vk[:, m], m]
+    return MarkerSets(positions=out, groups=tuple(tuple(int(keep[m]) for m in ms)
+                                                  for ms in groups),
+                      dropped=dropped, n_min=n_min, distance=D)
