@@ -16,6 +16,7 @@ import numpy as np
 from calibration.bundle import bundle_adjust
 from calibration.camera import Camera, Rig
 from calibration.init_extrinsics import initial_poses, normalized, triangulate
+from calibration.points import refine_points
 from calibration.report import CalibrationReport, make_report
 from calibration.wand_detect import detect_single_point, detect_wand
 from capture.detections import Detections2D
@@ -47,7 +48,7 @@ def _intrinsics(initial, det: Detections2D) -> list[Camera]:
 def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0, 250.0, 500.0),
                    single_point: bool = False, refine_intrinsics: bool = False, rng=None,
                    progress: Callable[[str], None] | None = None,
-                   max_frames: int | None = None) -> WandCalibration:
+                   max_frames: int | None = None, jacobian: str = "analytic") -> WandCalibration:
     """Calibrate the extrinsics (and optionally intrinsics) of a rig from a waved wand.
 
     Args:
@@ -59,6 +60,7 @@ def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0
         rng: seed / Generator; the result does not depend on it beyond RANSAC seeding
             (fixed by it, default 0) and frame subsampling (evenly spaced, deterministic).
         max_frames: use at most this many frames with the most views (evenly spread).
+        jacobian: bundle adjustment Jacobian, "analytic" or "numeric" (``bundle.JACOBIANS``).
     """
     say = progress or (lambda s: None)
     seed = int(np.random.default_rng(rng).integers(2**31)) if rng is not None else 0
@@ -94,11 +96,21 @@ def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0
     use = np.ones(C, bool)
     X0 = np.stack([triangulate(nxy[:, :, m], init.R, init.t, use) for m in range(M)], axis=1)
     say("bundle adjustment")
-    ba = bundle_adjust(cams, xy, X0, spacing_m=spacing, refine_intrinsics=refine_intrinsics)
-    nf = normalized(np.where(ba.inlier[..., None], xy, np.nan), ba.cameras)
+    ba = bundle_adjust(cams, xy, X0, spacing_m=spacing, refine_intrinsics=refine_intrinsics,
+                       jac=jacobian)
+    xin = np.where(ba.inlier[..., None], xy, np.nan)
+    nf = normalized(xin, ba.cameras)
     Rf = np.stack([c.R for c in ba.cameras])
     tf = np.stack([c.t for c in ba.cameras])
-    Xfree = np.stack([triangulate(nf[:, :, m], Rf, tf, use) for m in range(M)], axis=1)
-    rep = make_report(ba.cameras, xy, ba.residual_px, ba.inlier, Xfree, spacing_m=spacing)
+    Xfree = np.stack([refine_points(ba.cameras, xin[:, :, m],
+                                    triangulate(nf[:, :, m], Rf, tf, use)) for m in range(M)],
+                     axis=1)
+    # pixel noise from the residuals, corrected for the parameters the bundle fitted
+    n_res = 2 * int(ba.inlier.sum())
+    n_par = (6 * (C - 1) + (5 * C if refine_intrinsics else 0)
+             + (5 if spacing is not None else 3 * M) * int(ba.inlier.any(axis=(0, 2)).sum()))
+    noise = float(np.sqrt(np.nansum(ba.residual_px[ba.inlier] ** 2) / max(n_res - n_par, 1)))
+    rep = make_report(ba.cameras, xy, ba.residual_px, ba.inlier, Xfree, spacing_m=spacing,
+                      noise_px=noise)
     return WandCalibration(rig=Rig(cameras=tuple(ba.cameras)), report=rep, ok=True,
                            residual_px=ba.residual_px)

@@ -18,6 +18,9 @@ NOISY_CENTRE_M = 1e-3
 NOISY_ANGLE_DEG = 0.02
 NOISE_PX = 0.05
 RMS_REL = 0.2                # per-coordinate reprojection RMS within 20% of the injected noise
+# ~200 frames: the sample SD of the wand length has ~5% relative standard error; the report's
+# floor comes from the estimated noise (within ~5% of the injected one)
+SD_FLOOR_REL = 0.2
 
 
 def _setup(n_cams, n_frames, noise, seed=1, spurious=0.0):
@@ -58,6 +61,14 @@ def test_noisy_wand_within_noise_bounds_and_deterministic():
     rms_coord = res.report.rms_px / np.sqrt(2)
     assert np.all(np.abs(rms_coord - NOISE_PX) < RMS_REL * NOISE_PX)
     assert abs(res.report.wand_mean_mm - 500.0) < 0.1
+    # the wand SD is triangulation noise: at the floor the estimated noise predicts
+    rep = res.report
+    assert abs(rep.noise_px - NOISE_PX) < RMS_REL * NOISE_PX
+    assert abs(rep.wand_sd_mm / rep.wand_sd_floor_mm - 1) < SD_FLOOR_REL
+    assert "noise floor" in rep.summary()
+    num = calibrate_wand(ob.detections, initial_intrinsics=init, rng=5, jacobian="numeric")
+    for a, b in zip(res.rig, num.rig):
+        np.testing.assert_allclose(a.t, b.t, atol=1e-6)   # same optimum, solver tolerance
     again = calibrate_wand(ob.detections, initial_intrinsics=init, rng=99)
     for a, b in zip(res.rig, again.rig):
         np.testing.assert_allclose(a.t, b.t, atol=1e-9)
