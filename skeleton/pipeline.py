@@ -12,17 +12,49 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skeleton.joints import JointFit, fit_joint
+from scipy.signal import butter, sosfiltfilt
+
+from skeleton.joints import JointFit, fit_joint, joint_cost
 from skeleton.segments import segment_markers
 from skeleton.topology import skeleton_tree
 
-__all__ = ["SkeletonResult", "solve_skeleton"]
+__all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
+
+COST_CUTOFF_HZ = 6.0   # low-pass for the topology costs (biomechanics' usual 6 Hz)
+
+
+def lowpass(traj: np.ndarray, rate_hz: float, cutoff_hz: float = COST_CUTOFF_HZ,
+            trim: bool = False) -> np.ndarray:
+    """Zero-phase 4th-order Butterworth low-pass of (T, M, 3) trajectories along time, run by
+    run between NaN gaps (runs too short to filter are kept as they are). The input is
+    returned unchanged when ``cutoff_hz`` is not below the Nyquist frequency / 2. ``trim``
+    sets the first and last ``1.5 / cutoff_hz`` s of every filtered run to NaN (the
+    filter's start-up transient), keeping at least half of the run."""
+    traj = np.asarray(traj, np.float64)
+    if not rate_hz > 0 or not cutoff_hz > 0:
+        raise ValueError(f"rate_hz={rate_hz!r}, cutoff_hz={cutoff_hz!r}, expected > 0")
+    if cutoff_hz >= rate_hz / 4:
+        return traj.copy()
+    sos = butter(2, cutoff_hz, fs=rate_hz, output="sos")
+    out = traj.copy()
+    pad = 3 * (2 * len(sos) + 1)
+    for m in range(traj.shape[1]):
+        ok = ~np.isnan(traj[:, m]).any(1)
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(int), [0]])))
+        for a, b in zip(edges[::2], edges[1::2]):
+            if b - a > pad:
+                out[a:b, m] = sosfiltfilt(sos, traj[a:b, m], axis=0)
+                e = min(int(1.5 * rate_hz / cutoff_hz), (b - a) // 4)
+                if trim and e > 0:
+                    out[a:a + e, m] = out[b - e:b, m] = np.nan
+    return out
 
 
 @dataclass(frozen=True, kw_only=True)
 class SkeletonResult:
     """labels (M,) segment per marker; n_segments; eigengap_k; root; parents (S,);
-    cost (S, S) joint-fit residuals m; joints: tuple of JointFit per segment (None for the
+    cost (S, S) topology costs m (noise-normalised joint-fit
+    residuals, ``skeleton.joints.joint_cost``, on 6 Hz low-passed data); joints: tuple of JointFit per segment (None for the
     root: the joint with its parent); joint_centres (T, S, 3) m (the root's: NaN); rate_hz."""
 
     labels: np.ndarray
@@ -46,11 +78,13 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     S = seg.n_segments
     say(f"segments: {S} (eigengap choice {seg.eigengap_k})")
     members = [np.flatnonzero(seg.labels == s) for s in range(S)]
+    # Topology cost of every pair on low-passed data: a false joint's misfit follows the
+    # (slow) motion, the marker noise is broadband, so filtering separates them.
+    smooth = lowpass(traj, rate_hz, trim=True)
     cost = np.full((S, S), np.inf)
     for i in range(S):
         for j in range(i + 1, S):
-            f = fit_joint(traj, members[i], members[j], refine=False)
-            cost[i, j] = cost[j, i] = f.residual_m if f.ok else np.inf
+            cost[i, j] = cost[j, i] = joint_cost(smooth, members[i], members[j])
     say(f"joint costs: {S * (S - 1) // 2} pairs")
     top = skeleton_tree(cost)
     say(f"topology: root segment {top.root}")
