@@ -6,12 +6,48 @@ marker positions (rig frame, m) onto their known world coordinates (z up, floor 
 [frames]) and applies it to every camera. ``floor_from_points`` fits a plane to floor markers
 (SVD) and returns the rotation/translation putting it at z = 0 with z pointing towards the
 cameras.
+``match_reference`` finds which measured (unlabelled) point is which reference marker (the
+assignment with the smallest Kabsch residual; a symmetric reference that leaves two
+assignments equally good is reported, not guessed). ``align_world`` / ``align_floor`` return a
+``WorldAlignment`` that says whether it worked and why not (e.g. cameras below the floor: the
+reference geometry was given mirrored, which a right-handed z-up world cannot hold).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import permutations
 
 import numpy as np
 
 from calibration.camera import Rig
+
+
+@dataclass(frozen=True, kw_only=True)
+class WorldAlignment:
+    """rig: the rig in the world frame (None when not ok); R, t: ``world_from_old``;
+    rms_m: residual of the reference markers (m); order: (M,) index of the measured point
+    used for each reference marker; ok / reason."""
+
+    rig: Rig | None
+    R: np.ndarray | None
+    t: np.ndarray | None
+    rms_m: float
+    order: np.ndarray | None
+    ok: bool
+    reason: str = ""
+
+
+def l_frame_reference(x_mm: float, y_mm: float, x_mid_mm: float | None = None) -> np.ndarray:
+    """Markers of an L-frame lying on the floor (m): corner at the origin, one at ``x_mm`` on
+    the x axis, one at ``y_mm`` on the y axis, and optionally one at ``x_mid_mm`` on x."""
+    pts = [[0, 0, 0], [x_mm, 0, 0], [0, y_mm, 0]]
+    if x_mid_mm is not None:
+        if not 0 < x_mid_mm < x_mm:
+            raise ValueError(f"x_mid_mm={x_mid_mm}, expected between 0 and x_mm={x_mm}")
+        pts.append([x_mid_mm, 0, 0])
+    if x_mm <= 0 or y_mm <= 0:
+        raise ValueError(f"x_mm={x_mm}, y_mm={y_mm}: arm lengths must be > 0")
+    return np.array(pts, np.float64) / 1000.0
 
 
 def kabsch(src, dst) -> tuple[np.ndarray, np.ndarray]:
@@ -72,3 +108,78 @@ def floor_from_points(rig: Rig, floor_points) -> tuple[np.ndarray, np.ndarray]:
     y = np.cross(n, x)
     R = np.stack([x, y, n])
     return R, -R @ c
+
+
+def match_reference(points, reference, *, ambiguity_ratio: float = 3.0):
+    """(order, R, t, rms_m): measured points (N >= M, 3) assigned to the reference (M, 3).
+
+    Raises ValueError when N < M, or when a second assignment with a different pose fits
+    within ``ambiguity_ratio`` x the best residual (+1 mm): the reference is symmetric or the
+    measured points do not show it.
+    """
+    P = np.asarray(points, np.float64)
+    Q = np.asarray(reference, np.float64)
+    if Q.ndim != 2 or Q.shape[1] != 3 or len(Q) < 3:
+        raise ValueError(f"reference.shape={Q.shape}, expected (M>=3, 3)")
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < len(Q):
+        raise ValueError(f"found {len(P)} static markers, the reference has {len(Q)}")
+    if len(P) > 9:
+        raise ValueError(f"found {len(P)} static markers: too many to match (remove clutter)")
+    fits = []
+    for perm in permutations(range(len(P)), len(Q)):
+        idx = np.array(perm)
+        try:
+            R, t = kabsch(P[idx], Q)
+        except ValueError:
+            continue
+        res = Q - (P[idx] @ R.T + t)
+        fits.append((float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))), idx, R, t))
+    if not fits:
+        raise ValueError("the measured points are collinear")
+    fits.sort(key=lambda f: f[0])
+    best = fits[0]
+    for other in fits[1:]:
+        if other[0] > ambiguity_ratio * best[0] + 1e-3:
+            break
+        if np.abs(other[2] - best[2]).max() > 1e-3 or np.abs(other[3] - best[3]).max() > 1e-3:
+            raise ValueError(f"two assignments fit the reference ({best[0] * 1000:.2f} mm and "
+                             f"{other[0] * 1000:.2f} mm RMS): it is symmetric, or the "
+                             "measured points do not show it")
+    return best[1], best[2], best[3], best[0]
+
+
+def _cameras_above(rig: Rig) -> bool:
+    return bool(np.mean([c.center[2] for c in rig]) > 0)
+
+
+def align_world(rig: Rig, points, reference, *, max_rms_m: float = 0.005) -> WorldAlignment:
+    """Move ``rig`` so the measured static markers (N, 3) land on ``reference`` (M, 3)."""
+    try:
+        order, R, t, rms = match_reference(points, reference)
+    except ValueError as e:
+        return WorldAlignment(rig=None, R=None, t=None, rms_m=np.nan, order=None, ok=False,
+                              reason=str(e))
+    if rms > max_rms_m:
+        return WorldAlignment(rig=None, R=R, t=t, rms_m=rms, order=order, ok=False,
+                              reason=f"reference residual {rms * 1000:.1f} mm > "
+                                     f"{max_rms_m * 1000:.1f} mm: wrong geometry or markers")
+    out = transform_rig(rig, R, t)
+    if not _cameras_above(out):
+        return WorldAlignment(rig=None, R=R, t=t, rms_m=rms, order=order, ok=False,
+                              reason="cameras end up below the floor: the reference geometry "
+                                     "is mirrored (x, y, z must be right-handed, z up)")
+    return WorldAlignment(rig=out, R=R, t=t, rms_m=rms, order=order, ok=True)
+
+
+def align_floor(rig: Rig, floor_points) -> WorldAlignment:
+    """Plane fit: floor markers (N >= 3) at z = 0, cameras above; origin at their centroid."""
+    P = np.asarray(floor_points, np.float64)
+    try:
+        R, t = floor_from_points(rig, P)
+    except ValueError as e:
+        return WorldAlignment(rig=None, R=None, t=None, rms_m=np.nan, order=None, ok=False,
+                              reason=str(e))
+    z = P @ R.T + t
+    rms = float(np.sqrt(np.mean(z[:, 2] ** 2)))
+    return WorldAlignment(rig=transform_rig(rig, R, t), R=R, t=t, rms_m=rms,
+                          order=np.arange(len(P)), ok=True)
