@@ -235,3 +235,4 @@ def build_rigid_skeleton(trajectories, result, marker_names=None) -> RigidSkelet
                          marker_offsets=marker_offsets, joint_offsets=joint_offsets,
                          hinge=hinge, hinge_axes_parent=ax_p, hinge_axes_child=ax_c,
                          joint_residual_m=res, end_sites=end_sites)
+

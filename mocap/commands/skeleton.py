@@ -1,0 +1,49 @@
+"""``mocap skeleton MARKERS.c3d|.trc -o skeleton.bvh``: a skeleton from unlabelled markers.
+
+Reads the marker file (``reconstruct.marker_files.read_markers``), runs
+``skeleton.app.run_skeleton`` (marker sets, segments, joints, topology, rigid skeleton,
+fit back) with progress on stderr, writes the BVH (and the skeleton JSON with ``--report``)
+and prints the summary and the per-marker deviation tables.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+
+def _run(args) -> int:
+    from reconstruct.marker_files import read_markers
+    from skeleton.app import run_skeleton, write_outputs
+    from skeleton.report import summary_table
+
+    def say(msg):
+        print(f"[skeleton] {msg}", file=sys.stderr, flush=True)
+
+    data = read_markers(Path(args.input))
+    say(f"read {args.input}: {data.n_markers} trajectories, {data.n_frames} frames at "
+        f"{data.rate_hz:g} Hz")
+    run = run_skeleton(data, n_segments=args.segments, rng=args.seed, progress=say,
+                       merge=not args.no_merge, min_frames=args.min_frames)
+    paths = write_outputs(run, args.output, args.report, units=args.units)
+    print(summary_table(run.rigid, run.deviation))
+    print()
+    print(run.deviation.format())
+    for p in paths:
+        print(f"wrote {p}")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("skeleton", help="skeleton (BVH) from unlabelled marker data")
+    p.add_argument("input", help="marker file (.c3d, .trc or .csv)")
+    p.add_argument("-o", "--output", required=True, help="BVH file to write")
+    p.add_argument("--segments", type=int, default=None,
+                   help="number of segments (default: chosen by the eigengap)")
+    p.add_argument("--report", default=None, help="skeleton JSON to write")
+    p.add_argument("--units", choices=("m", "cm", "mm"), default="m", help="BVH length unit")
+    p.add_argument("--min-frames", type=int, default=10,
+                   help="drop trajectory fragments shorter than this")
+    p.add_argument("--no-merge", action="store_true",
+                   help="trust the file's marker ids (skip merging fragments)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_run)

@@ -1,0 +1,88 @@
+"""Markers -> skeleton, wired end to end (the library behind ``mocap skeleton``).
+
+``run_skeleton(markers: MarkerData, n_segments=None, rng=None, progress=None) ->
+SkeletonRun``: marker sets (``skeleton.markersets``), the solver
+(``skeleton.pipeline.solve_skeleton``), the rigid skeleton
+(``skeleton.rigid_skeleton``), the per-frame fit back (``skeleton.fit``) and the marker
+deviation table (``skeleton.report``). ``write_outputs(run, bvh_path, json_path=None)``
+writes the BVH and the skeleton JSON. No algorithm lives here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from skeleton.bvh import write_bvh
+from skeleton.fit import SkeletonFit, fit_skeleton
+from skeleton.markersets import MarkerSets, merge_fragments
+from skeleton.pipeline import SkeletonResult, solve_skeleton
+from skeleton.report import DeviationTable, marker_deviation_table, write_skeleton_json
+from skeleton.rigid_skeleton import RigidSkeleton, build_rigid_skeleton
+
+__all__ = ["SkeletonRun", "run_skeleton", "write_outputs"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class SkeletonRun:
+    """trajectories (T, M, 3) m after merging; marker_names (M,); rate_hz; markersets (None
+    when merging was off); result; rigid; fit; deviation."""
+
+    trajectories: np.ndarray
+    marker_names: tuple[str, ...]
+    rate_hz: float
+    markersets: MarkerSets | None
+    result: SkeletonResult
+    rigid: RigidSkeleton
+    fit: SkeletonFit
+    deviation: DeviationTable
+
+    def __post_init__(self):
+        X = np.asarray(self.trajectories)
+        if X.ndim != 3 or X.shape[2] != 3 or X.shape[1] != len(self.marker_names):
+            raise ValueError(f"trajectories.shape={X.shape}, expected "
+                             f"(T, {len(self.marker_names)}, 3)")
+
+
+def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None,
+                 merge: bool = True, min_frames: int = 10) -> SkeletonRun:
+    """``markers`` is a ``reconstruct.marker_files.MarkerData`` (or anything with
+    ``positions`` (T, M, 3) m, ``labels`` and ``rate_hz``)."""
+    say = progress or (lambda msg: None)
+    X = np.asarray(markers.positions, np.float64)
+    labels = tuple(markers.labels)
+    sets = None
+    if merge:
+        sets = merge_fragments(X, min_frames=min_frames)
+        X = sets.positions
+        labels = tuple(labels[g[0]] for g in sets.groups)
+        say(f"marker sets: {len(markers.labels)} trajectories -> {sets.n_markers} markers "
+            f"({len(sets.dropped)} dropped as shorter than {min_frames} frames)")
+    if X.shape[1] < 3:
+        raise ValueError(f"{X.shape[1]} markers after merging, need at least 3")
+    res = solve_skeleton(X, markers.rate_hz, n_segments=n_segments, rng=rng, progress=say)
+    say("rigid skeleton")
+    rigid = build_rigid_skeleton(X, res, marker_names=labels)
+    say(f"fit back: {X.shape[0]} frames")
+    fit = fit_skeleton(X, rigid, markers.rate_hz)
+    dev = marker_deviation_table(X, rigid, fit)
+    return SkeletonRun(trajectories=X, marker_names=labels, rate_hz=float(markers.rate_hz),
+                       markersets=sets, result=res, rigid=rigid, fit=fit, deviation=dev)
+
+
+def write_outputs(run: SkeletonRun, bvh_path, json_path=None, units: str = "m") -> list[Path]:
+    out = [write_bvh(bvh_path, run.rigid, run.fit, run.rate_hz, units=units)]
+    if json_path is not None:
+        d = run.deviation
+        extra = {"rate_hz": run.rate_hz, "n_frames": int(run.trajectories.shape[0]),
+                 "eigengap_k": int(run.result.eigengap_k),
+                 "mean_marker_deviation_mm": 1e3 * d.overall_mean_m,
+                 "marker_deviation_mm": {n: (None if not np.isfinite(v) else 1e3 * float(v))
+                                         for n, v in zip(d.marker_names, d.mean_m)},
+                 "fitted_fraction": float((run.fit.status > 0).mean())}
+        if run.markersets is not None:
+            extra["marker_sets"] = {"groups": [list(g) for g in run.markersets.groups],
+                                    "dropped": list(run.markersets.dropped)}
+        out.append(write_skeleton_json(json_path, run.rigid, extra))
+    return out

@@ -1,0 +1,110 @@
+"""Rigid skeleton and per-frame fit back vs hw_sim truth, with hidden markers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hw_sim.articulated import animate, humanoid, random_tree
+from skeleton.fit import FIT_HINGE, FIT_JOINT, FIT_MARKERS, FIT_NONE, fit_skeleton
+from skeleton.pipeline import solve_skeleton
+from skeleton.rigid_skeleton import build_rigid_skeleton
+from tests.skeleton._figures import joint_errors, segment_map
+
+EXACT_M = 1e-8          # noise-free: joints and markers recovered to rounding
+NOISE_M = 1e-3
+# 1 mm marker noise. The issue's 3 mm target is for the solver's joint centres
+# (tests/skeleton/test_pipeline.py); the hierarchical fit back adds each parent's per-frame
+# rotation noise down the chain: measured 3.3 mm median per-frame joint error (solver's
+# per-frame estimate on the same data: 1.8 mm) and 2.6 mm mean marker deviation (the joint offsets carry the solver's bias).
+NOISY_FIT_JOINT_MEDIAN_M = 4e-3
+NOISY_DEVIATION_M = 3e-3
+
+
+def _solve(fig, mo, traj=None):
+    traj = mo.markers if traj is None else traj
+    res = solve_skeleton(traj, mo.rate_hz, n_segments=fig.n_segments, rng=0)
+    segmap = segment_map(fig, res.labels)
+    assert segmap is not None
+    return res, segmap, build_rigid_skeleton(traj, res)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_exact_fit_random_tree(seed):
+    fig = random_tree(8, (3, 4), rng=seed)
+    mo = animate(fig, 240, rng=seed)
+    res, segmap, rig = _solve(fig, mo)
+    fit = fit_skeleton(mo.markers, rig, mo.rate_hz)
+    assert (fit.status > 0).all()
+    assert np.nanmax(fit.marker_deviation(mo.markers)) < EXACT_M
+    assert joint_errors(fig, mo, res.parents, fit.joint_centres, segmap).max() < EXACT_M
+    # bone lengths: distance between consecutive true joints
+    for s in range(1, fig.n_segments):
+        e, ep = segmap[s], segmap[fig.parents[s]]
+        if res.parents[e] == ep and fig.parents[s] != 0 and fig.joint_types[s] == "ball" \
+                and fig.joint_types[fig.parents[s]] == "ball" and res.parents[ep] >= 0:
+            assert abs(rig.bone_lengths[e] - np.linalg.norm(fig.joint_offsets[s])) < EXACT_M
+    # rotations are proper
+    R = fit.world_from_segment_R.reshape(-1, 3, 3)
+    assert np.allclose(np.linalg.det(R), 1.0)
+
+
+def test_hidden_markers_humanoid():
+    """Markers hidden at random (30 %): 3, 2 and 1 visible markers (hinges) per segment."""
+    fig = humanoid(rng=0)
+    mo = animate(fig, 300, rng=1)
+    res, segmap, rig = _solve(fig, mo)
+    traj = mo.markers.copy()
+    traj[np.random.default_rng(3).uniform(size=traj.shape[:2]) < 0.3] = np.nan
+    fit = fit_skeleton(traj, rig, mo.rate_hz)
+    counts = np.bincount(fit.status.ravel(), minlength=4)
+    assert counts[FIT_JOINT] > 0 and counts[FIT_HINGE] > 0 and counts[FIT_NONE] > 0
+    err = joint_errors(fig, mo, res.parents, fit.joint_centres, segmap)
+    assert np.nanmax(err) < EXACT_M
+    # everything fitted is exact: markers (also the hidden ones) sit on the truth
+    seen = ~np.isnan(fit.fitted_markers[..., 0])
+    assert np.abs(fit.fitted_markers[seen] - mo.markers[seen]).max() < EXACT_M
+    # NaN exactly where the rules say: count visible markers per (frame, segment)
+    vis = ~np.isnan(traj[..., 0])
+    nvis = np.stack([vis[:, rig.marker_segment == s].sum(1) for s in range(rig.n_segments)], 1)
+    for s in rig.order:
+        p = rig.parents[s]
+        par = fit.status[:, p] > 0 if p >= 0 else np.zeros(len(traj), bool)
+        expect = (par & (nvis[:, s] >= 2)) | (~par & (nvis[:, s] >= 3))
+        if rig.hinge[s]:
+            expect |= par & (nvis[:, s] == 1)
+        np.testing.assert_array_equal(fit.status[:, s] > 0, expect)
+        assert np.isnan(fit.joint_centres[fit.status[:, s] == 0, s]).all()
+    root_lost = fit.status[:, rig.root] == FIT_NONE
+    assert root_lost.any() and (fit.status[root_lost] == FIT_MARKERS).any()
+
+
+def test_two_marker_segments_fit_about_joint():
+    fig = random_tree(6, (2, 4), rng=11)
+    mo = animate(fig, 200, rng=11)
+    res, segmap, rig = _solve(fig, mo)
+    fit = fit_skeleton(mo.markers, rig, mo.rate_hz)
+    two = [s for s in range(rig.n_segments) if (rig.marker_segment == s).sum() == 2]
+    assert two and all((fit.status[:, s] == FIT_JOINT).all() for s in two)
+    dev = fit.marker_deviation(mo.markers)
+    # the two-marker joints come from the solver's world-frame fit: bound, not rounding
+    assert np.nanmax(dev) < 1e-3
+
+
+def test_noisy_fit():
+    fig = random_tree(6, (3, 4), rng=21)
+    mo = animate(fig, 600, rng=21)
+    noisy = mo.markers + np.random.default_rng(5).normal(0, NOISE_M, mo.markers.shape)
+    res, segmap, rig = _solve(fig, mo, noisy)
+    fit = fit_skeleton(noisy, rig, mo.rate_hz)
+    err = joint_errors(fig, mo, res.parents, fit.joint_centres, segmap)
+    assert np.median(err) < NOISY_FIT_JOINT_MEDIAN_M
+    dev = fit.marker_deviation(noisy)
+    assert NOISE_M < np.nanmean(dev) < NOISY_DEVIATION_M
+
+
+def test_bad_input():
+    fig = random_tree(4, (3, 3), rng=0)
+    mo = animate(fig, 60, rng=0)
+    res, _, rig = _solve(fig, mo)
+    with pytest.raises(ValueError, match="trajectories.shape"):
+        fit_skeleton(mo.markers[:, :-1], rig)
