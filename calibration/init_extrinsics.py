@@ -122,7 +122,12 @@ def initial_poses(nxy: np.ndarray, *, spacing_m=None, symmetric: bool = False,
     Returns the poses and nxy with the wand ends in a consistent order across cameras.
     """
     C, T, M, _ = nxy.shape
-    pt = nxy[:, :, 1] if M == 3 else np.nanmean(nxy, axis=2) if M == 2 else nxy[:, :, 0]
+    if M == 3:
+        pt = nxy[:, :, 1]
+    elif M == 2:   # image midpoint of the two ends: close to the wand centre's image (init only)
+        pt = 0.5 * (nxy[:, :, 0] + nxy[:, :, 1])
+    else:
+        pt = nxy[:, :, 0]
     seen = np.all(np.isfinite(pt), axis=2)
     R = np.tile(np.eye(3), (C, 1, 1))
     t = np.zeros((C, 3))

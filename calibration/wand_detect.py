@@ -10,6 +10,9 @@ intrinsics) and the middle point divides it in a ratio within ``ratio_tol`` of t
 more blobs than markers is kept only when exactly one triple passes (else ambiguous, rejected).
 For a symmetric wand the two ends cannot be told apart in one image: ``symmetric`` is True and
 the end order is resolved across cameras later (``init_extrinsics.resolve_end_order``).
+A 2-marker wand has no in-image invariant: a camera-frame is used only when it holds exactly
+two blobs (frames with extra blobs are skipped; with one spurious blob per image on average
+about a third of the camera-frames remain).
 Single-point mode: a camera-frame is used when it holds exactly one blob.
 """
 from __future__ import annotations
