@@ -7,6 +7,13 @@ to a gate that widens with the time since the track was last seen. An unmatched 
 a gap (NaN) and keeps predicting; after more than ``max_gap_frames`` missing frames it ends,
 so a marker reappearing later gets a new id: a trajectory is broken rather than swapped.
 Unmatched points start new tracks.
+
+Ambiguity: when two markers come close (their blobs merge into one point, or two points fit
+one prediction nearly equally well), no assignment can be trusted. A matched pair
+(track r with a velocity, point c) is ambiguous when another live track's prediction is within
+``ambiguity_margin_m`` of being as close to c, or another point is within that margin of
+being as close to r's prediction. Every track involved ends there and the points start new
+tracks: the trajectories are broken rather than swapped.
 Conventions: docs/conventions.md [arrays] ((T, M, 3), NaN gaps), [units], [time].
 """
 from __future__ import annotations
@@ -39,6 +46,8 @@ class TrackingConfig:
             is broken off as a new trajectory rather than risk taking a neighbour's point).
         max_gap_frames: a track missing for more frames ends (the marker gets a new id).
         min_length: tracks with fewer samples are dropped (1 keeps every track).
+        ambiguity_margin_m: a competing track or point closer than the assigned distance plus
+            this margin makes the assignment ambiguous: the tracks end (None: off).
     """
 
     model: str = "velocity"
@@ -48,6 +57,7 @@ class TrackingConfig:
     max_gate_m: float = 0.03
     max_gap_frames: int = 5
     min_length: int = 1
+    ambiguity_margin_m: float | None = 0.004
 
     def __post_init__(self):
         if self.model not in _MODELS:
@@ -59,6 +69,34 @@ class TrackingConfig:
             raise ValueError(f"max_gap_frames={self.max_gap_frames}, expected >= 0")
         if self.min_length < 1:
             raise ValueError(f"min_length={self.min_length}, expected >= 1")
+        if self.ambiguity_margin_m is not None and not self.ambiguity_margin_m >= 0:
+            raise ValueError(f"ambiguity_margin_m={self.ambiguity_margin_m}, expected >= 0 "
+                             "or None")
+
+
+def _drop_ambiguous(cost, r, c, margin, established):
+    """Remove ambiguous pairs from the assignment ``r -> c`` (gated ``cost``, _BIG outside).
+
+    Only ``established`` tracks (with a velocity) are tested: a track without one predicts
+    its last position, equally far from every neighbour moving the same way, so its
+    second sample is left to the optimal assignment.
+    Returns (r, c) kept and the indices of every track involved in an ambiguity (matched or
+    not), which the caller ends.
+    """
+    d = cost[r, c]
+    lim = (d + margin)[:, None]
+    comp_tr = cost[:, c].T < lim                      # (K, n_tracks): tracks near point c
+    comp_tr[np.arange(r.size), r] = False
+    comp_pt = cost[r] < lim                           # (K, n_pts): points near track r
+    comp_pt[np.arange(r.size), c] = False
+    amb = (comp_tr.any(axis=1) | comp_pt.any(axis=1)) & established[r]
+    if not amb.any():
+        return r, c, np.zeros(0, np.int64)
+    ended = set(r[amb].tolist())
+    ended.update(np.flatnonzero(comp_tr[amb].any(axis=0)).tolist())
+    ended_arr = np.array(sorted(ended), np.int64)
+    keep = ~np.isin(r, ended_arr)
+    return r[keep], c[keep], ended_arr
 
 
 def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
@@ -112,6 +150,9 @@ def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
             r, c = linear_sum_assignment(cost)
             ok = cost[r, c] < _BIG
             r, c = r[ok], c[ok]
+            if cfg.ambiguity_margin_m is not None and r.size:
+                r, c, ended = _drop_ambiguous(cost, r, c, cfg.ambiguity_margin_m, hv)
+                missed[ended] = cfg.max_gap_frames + 1      # ends below
             newp = pts[c]
             consec = missed[r] == 0
             kr = (missed[r] + 1).astype(np.float64)
@@ -133,7 +174,7 @@ def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
             rec_id.append(ids[r])
             rec_p.append(newp)
             rec_r.append(res[c])
-        missed[~matched_tr] += 1
+        missed[~matched_tr] = np.minimum(missed[~matched_tr] + 1, cfg.max_gap_frames + 1)
         alive = missed <= cfg.max_gap_frames
         ids, last, vel, acc, n_consec, missed = (a[alive] for a in
                                                  (ids, last, vel, acc, n_consec, missed))

@@ -118,3 +118,62 @@ def score_tracks(traj, obs, max_gap_frames, tol_m=0.005):
     actual = np.array([len(s) for s in tracks_of])
     return dict(swaps=swaps, expected=expected, actual=actual,
                 unmatched_samples=unmatched_samples)
+
+
+def score_identity(traj, obs, tol_m=0.005, resolve_m=0.028):
+    """Identity swaps and trajectory breaks of ``traj`` against truth.
+
+    A sample belongs to the nearest true marker within ``tol_m``; it is *resolved* when every
+    other true marker is at least ``resolve_m`` (default two 14 mm marker diameters) from
+    that marker, so the two cannot share blobs.
+
+    - ``swaps``: trajectories holding resolved samples of two or more true markers.
+    - ``swaps_any``: trajectories holding samples (resolved or not) of two or more markers.
+    - ``breaks``: for each true marker, each change of trajectory between consecutive samples
+      of that marker (its samples in time order, from whatever trajectory).
+    - ``breaks_at_occlusion``: breaks where, in some frame from the last sample of the old
+      trajectory to the first of the new one (inclusive), the marker has its own blob in
+      fewer than 2 cameras (``reconstructable`` is False): the break coincides with a true
+      occlusion (or merge).
+    - ``unjustified``: the other breaks, as (marker, frame of the old sample, frame of the new).
+    """
+    T, M = traj.positions.shape[:2]
+    f0 = traj.first_frame
+    truth = obs.positions[f0:f0 + T]
+    need = reconstructable(obs)[f0:f0 + T]
+    owner = np.full((T, M), -1)
+    resolved = np.zeros((T, M), bool)
+    for t in range(T):
+        ok = np.flatnonzero(np.all(np.isfinite(traj.positions[t]), axis=1))
+        if not ok.size:
+            continue
+        m = match_points(traj.positions[t, ok], truth[t], tol_m)
+        owner[t, ok] = m
+        tr = truth[t]
+        d = np.linalg.norm(tr[:, None] - tr[None], axis=2)
+        np.fill_diagonal(d, np.inf)
+        near = np.nanmin(np.where(np.isfinite(d), d, np.inf), axis=1)      # (M_true,)
+        has = m >= 0
+        resolved[t, ok[has]] = near[m[has]] >= resolve_m
+    swaps = swaps_any = 0
+    for k in range(M):
+        o = owner[:, k]
+        swaps_any += len(set(o[o >= 0].tolist())) > 1
+        swaps += len(set(o[resolved[:, k]].tolist())) > 1
+    breaks = at_occl = 0
+    unjust = []
+    for i in range(truth.shape[1]):
+        tt, kk = np.nonzero(owner == i)
+        if not tt.size:
+            continue
+        order = np.lexsort((kk, tt))
+        tt, kk = tt[order], kk[order]
+        for j in np.flatnonzero(kk[1:] != kk[:-1]):
+            a, b = tt[j], tt[j + 1]
+            breaks += 1
+            if not need[a:b + 1, i].all():
+                at_occl += 1
+            else:
+                unjust.append((i, int(a + f0), int(b + f0)))
+    return dict(swaps=swaps, swaps_any=swaps_any, breaks=breaks, breaks_at_occlusion=at_occl,
+                unjustified=unjust)
