@@ -255,8 +255,25 @@ def _four_marker_init(X: np.ndarray) -> np.ndarray | None:
     A = np.column_stack([-2 * np.einsum("fki,fk->fi", Q, p), -np.ones(ok.sum())] +
                         [QQ[:, i, j] * (1 if i == j else 2) for i, j in iu])
     w = 1 / (1 + (Q**2).sum((1, 2)))                                    # tame near-singular
-    th = np.linalg.lstsq(A * w[:, None], -(p**2).sum(1) * w, rcond=None)[0]
-    k = th[:3]
+    b = -(p**2).sum(1) * w
+    U, sv, Vt = np.linalg.svd(A * w[:, None], full_matrices=False)
+    # The lifted system has an exact null vector (and near-null ones at small motion): solve
+    # on the 7 largest singular values, then move in the 3 smallest directions until the
+    # lifted unknowns are consistent (K = k k^T).
+    th0 = Vt[:7].T @ ((U[:, :7].T @ b) / sv[:7])
+    Nb = Vt[7:].T
+
+    def incons(beta):
+        th = th0 + Nb @ beta
+        kk = np.outer(th[:3], th[:3])
+        return np.array([th[4 + n] - kk[i, j] for n, (i, j) in enumerate(iu)])
+
+    best, k = np.inf, th0[:3]
+    scale = max(np.abs(th0).max(), 1e-9)
+    for g in (0.0, -1.0, 1.0, -10.0, 10.0):
+        sol = least_squares(incons, np.array([g * scale, 0.0, 0.0]), method="lm")
+        if sol.cost < best:
+            best, k = sol.cost, (th0 + Nb @ sol.x)[:3]
     Mi = np.linalg.pinv(M)
     return np.einsum("fij,fj->fi", Mi, y - k)
 

@@ -21,6 +21,7 @@ from skeleton.topology import skeleton_tree
 __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
 
 COST_CUTOFF_HZ = 6.0   # low-pass for the topology costs (biomechanics' usual 6 Hz)
+CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
 
 
 def lowpass(traj: np.ndarray, rate_hz: float, cutoff_hz: float = COST_CUTOFF_HZ,
@@ -80,7 +81,11 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     members = [np.flatnonzero(seg.labels == s) for s in range(S)]
     # Topology cost of every pair on low-passed data: a false joint's misfit follows the
     # (slow) motion, the marker noise is broadband, so filtering separates them.
-    smooth = lowpass(traj, rate_hz, trim=True)
+    # (Not when the data is already clean: the filter's own error, ~0.05 mm at 6 Hz, would
+    # then be the largest term. Noise level: within-segment distance sd.)
+    same = (seg.labels[:, None] == seg.labels[None]) & ~np.eye(seg.labels.size, dtype=bool)
+    noise_m = float(np.median(seg.distance_sd[same])) if same.any() else 0.0
+    smooth = lowpass(traj, rate_hz, trim=True) if noise_m > CLEAN_NOISE_M else traj
     cost = np.full((S, S), np.inf)
     for i in range(S):
         for j in range(i + 1, S):
