@@ -151,33 +151,18 @@ WORLD_MAX_FRAMES = 60
 
 def _fit_world(traj: np.ndarray, idx: np.ndarray) -> JointFit:
     """Two-marker segments: a per-frame centre ``c_t`` at constant distances ``r_m`` from
-    every marker of both segments (the thesis' cost in world coordinates), sparse LSQ."""
+    every marker of both segments (the thesis' cost in world coordinates), ``_world_solve``."""
     T = traj.shape[0]
     if idx.size < 4:
         return _fail(T, f"{idx.size} markers on the two segments, need 4")
     full = np.flatnonzero(~np.isnan(traj[:, idx]).any(axis=(1, 2)))
     if full.size < MIN_FRAMES:
         return _fail(T, f"only {full.size} frames see both segments")
-    sel = full[np.linspace(0, full.size - 1, min(full.size, WORLD_MAX_FRAMES)).astype(int)]
-    X = traj[sel][:, idx]                                   # (F, N, 3)
-    F, N = X.shape[:2]
-    c0 = X.mean(1) + 0.05 * np.cross(X[:, 1] - X[:, 0], X[:, -1] - X[:, 0])
-    r0 = np.linalg.norm(X - c0[:, None], axis=2).mean(0)
-
-    def fun(p):
-        c = p[: 3 * F].reshape(F, 3)
-        return (np.linalg.norm(X - c[:, None], axis=2) - p[3 * F:]).ravel()
-
-    from scipy.sparse import lil_matrix
-    sp = lil_matrix((F * N, 3 * F + N), dtype=int)
-    for f in range(F):
-        sp[f * N:(f + 1) * N, 3 * f:3 * f + 3] = 1
-        sp[f * N:(f + 1) * N, 3 * F:] = np.eye(N, dtype=int)
-    sol = least_squares(fun, np.concatenate([c0.ravel(), r0]), jac_sparsity=sp,
-                        method="trf", x_scale="jac", max_nfev=200)
-    res = float(np.sqrt(np.mean(sol.fun ** 2)))
+    X = traj[full][:, idx]                                  # (F, N, 3)
+    c, r, ssr = _world_solve(X, idx.size // 2)
+    res = float(np.sqrt(ssr / X.shape[0] / X.shape[1]))
     world = np.full((T, 3), np.nan)
-    world[sel] = sol.x[: 3 * F].reshape(F, 3)
+    world[full] = c
     n = np.full(3, np.nan)
     return JointFit(ok=True, reason="world-frame fit (two-marker segments)", ref=-1,
                     centre_local=n, world=world, residual_m=res, hinge=False, axis_local=n,
@@ -278,6 +263,37 @@ def _four_marker_init(X: np.ndarray) -> np.ndarray | None:
     return np.einsum("fij,fj->fi", Mi, y - k)
 
 
+def _world_solve(X: np.ndarray, na: int):
+    """World-frame joint fit for two 2-marker segments, X (F, 4, 3) with the first ``na`` = 2
+    markers on one segment: (c (F, 3), r (4,), ssr)."""
+    F = X.shape[0]
+    # two 2-marker segments: the world-frame cost is very non-convex (local minima 10-20 cm
+    # from the joint), so start along both marker lines, extended past the markers where
+    # joints sit; screen the starts on a few frames, refine the best on all.
+    lam = np.array([-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5])
+    starts = [X[:, o][:, None] + lam[None, :, None] * (X[:, o + 1] - X[:, o])[:, None]
+              for o in (0, na)]
+    starts = np.concatenate(starts, axis=1).transpose(1, 0, 2)          # (K, F, 3)
+    lin = _four_marker_init(X)
+    if lin is not None:
+        starts = np.concatenate([lin[None], starts])
+    few = np.linspace(0, F - 1, min(F, SCREEN_FRAMES)).astype(int)
+    screened = []
+    for c0 in starts:
+        r0 = np.linalg.norm(X[few] - c0[few][:, None], axis=2).mean(0)
+        c, r, ssr = _world_lm(X[few], c0[few].copy(), r0, SCREEN_ITERS)
+        # the screened centres, interpolated to every frame (smooth motion)
+        call = np.stack([np.interp(np.arange(F), few, c[:, k]) for k in range(3)], 1)
+        screened.append((ssr, call, r))
+    screened.sort(key=lambda z: z[0])
+    best = (None, None, np.inf)
+    for _, c0, r in screened[:REFINE_STARTS]:
+        sol = _world_lm(X, c0.copy(), r.copy())
+        if sol[2] < best[2]:
+            best = sol
+    return best
+
+
 def joint_cost(traj: np.ndarray, markers_a, markers_b, rng=None) -> float:
     """Topology cost of a candidate joint between two segments: the thesis' variance-of-
     distance cost in world coordinates (one centre per frame at constant distances from
@@ -302,27 +318,5 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, rng=None) -> float:
         refs = [k for k, m in enumerate((a, b)) if m.size >= 3]
         costs = [fit_joint(traj[sel], a, b, refine=True, ref=k).cost_m for k in refs]
         return float(np.mean(costs))
-    # two 2-marker segments: the world-frame cost is very non-convex (local minima 10-20 cm
-    # from the joint), so start along both marker lines, extended past the markers where
-    # joints sit; screen the starts on a few frames, refine the best on all.
-    lam = np.array([-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5])
-    starts = [X[:, o][:, None] + lam[None, :, None] * (X[:, o + 1] - X[:, o])[:, None]
-              for o in (0, a.size)]
-    starts = np.concatenate(starts, axis=1).transpose(1, 0, 2)          # (K, F, 3)
-    lin = _four_marker_init(X)
-    if lin is not None:
-        starts = np.concatenate([lin[None], starts])
-    few = np.linspace(0, F - 1, min(F, SCREEN_FRAMES)).astype(int)
-    screened = []
-    for c0 in starts:
-        r0 = np.linalg.norm(X[few] - c0[few][:, None], axis=2).mean(0)
-        c, r, ssr = _world_lm(X[few], c0[few].copy(), r0, SCREEN_ITERS)
-        # the screened centres, interpolated to every frame (smooth motion)
-        call = np.stack([np.interp(np.arange(F), few, c[:, k]) for k in range(3)], 1)
-        screened.append((ssr, call, r))
-    screened.sort(key=lambda z: z[0])
-    best = np.inf
-    for _, c0, r in screened[:REFINE_STARTS]:
-        _, _, ssr = _world_lm(X, c0.copy(), r.copy())
-        best = min(best, ssr)
-    return float(np.sqrt(best / dof))
+    _, _, ssr = _world_solve(X, a.size)
+    return float(np.sqrt(ssr / dof))
