@@ -59,9 +59,11 @@ class CalibrationReport:
         lines = [f"{'camera':>12} {'obs':>8} {'rms_px':>8} {'coverage':>9}"]
         for n, k, r, cv in zip(self.camera_names, self.n_obs, self.rms_px, self.coverage):
             lines.append(f"{n:>12} {int(k):8d} {r:8.3f} {cv:9.2f}")
+        unit = "mm" if np.isfinite(self.wand_mean_mm) else \
+            "mm if the camera 0-1 baseline were 1 m (single point: no metric scale)"
         lines.append(f"mean reprojection error {self.mean_error_px:.3f} px "
                      f"(noise estimate {self.noise_px:.3f} px per coordinate), "
-                     f"mean ray error {self.mean_ray_error_mm:.3f} mm")
+                     f"mean ray error {self.mean_ray_error_mm:.3f} {unit}")
         if np.isfinite(self.wand_mean_mm):
             lines.append(f"wand length {self.wand_mean_mm:.3f} mm, SD {self.wand_sd_mm:.3f} mm, "
                          f"score {self.wand_score:.4f}")

@@ -159,3 +159,31 @@ def test_same_input_same_result_whatever_the_seed(spacing):
     r2 = calibrate_wand(d2, initial_intrinsics=init, wand_mm=spacing)
     for a, b in zip(r2.rig, runs[0].rig):
         assert np.linalg.norm(a.center - b.center) < BLOB_ORDER_M
+
+
+# intrinsics refined from a 3% focal error, 5 px principal point error and no distortion
+# (truth k1 = -0.08, k2 = 0.02), 300 frames, 6 cameras, 0.05 px: measured |df| <= 0.12 px,
+# |dc| <= 0.19 px, |dk1| <= 0.0015, |dk2| <= 0.006, centres <= 1.2 mm, angles <= 0.016 deg;
+# bounds ~3-4x those (free intrinsics trade against the poses, so the pose bounds are looser
+# than with known intrinsics)
+REFINE_F_PX, REFINE_PP_PX, REFINE_K1, REFINE_K2 = 0.5, 0.75, 0.005, 0.02
+REFINE_CENTRE_M, REFINE_ANGLE_DEG = 4e-3, 0.05
+
+
+def test_refine_intrinsics_from_rough_guesses():
+    rig = make_rig(6, rng=1, dist=(-0.08, 0.02, 0, 0, 0))
+    ob = observe(rig, wand(300, rng=2), rng=3, noise_px=NOISE_PX)
+    g = np.random.default_rng(0)
+    init = [Camera.from_params(name=c.name, size=c.size, fx=c.K[0, 0] * g.uniform(0.97, 1.03),
+                               cx=c.K[0, 2] + g.uniform(-5, 5), cy=c.K[1, 2] + g.uniform(-5, 5))
+            for c in rig]
+    res = calibrate_wand(ob.detections, initial_intrinsics=init, refine_intrinsics=True)
+    assert res.ok, res.reason
+    for a, b in zip(res.rig, rig):
+        assert abs(a.K[0, 0] - b.K[0, 0]) < REFINE_F_PX
+        assert np.abs(a.K[:2, 2] - b.K[:2, 2]).max() < REFINE_PP_PX
+        assert abs(a.dist[0] - b.dist[0]) < REFINE_K1
+        assert abs(a.dist[1] - b.dist[1]) < REFINE_K2
+    dc, da = _errors(res.rig, rig)
+    assert dc.max() < REFINE_CENTRE_M and da.max() < REFINE_ANGLE_DEG
+    assert abs(res.report.noise_px - NOISE_PX) < RMS_REL * NOISE_PX
