@@ -3,8 +3,10 @@
 Stages: undistortion of every blob (``Camera.pixel_to_normalized``), per-frame spatial
 correspondence and triangulation (``reconstruct.correspondence``; frames are independent and
 run in parallel chunks on a ``ProcessPoolExecutor``), tracking (``reconstruct.tracking``),
-then optional spline gap filling (``reconstruct.gapfill``) and zero-phase Butterworth
-filtering (``reconstruct.filtering``).
+then :func:`postprocess`: rigid-body gap filling from the other markers of the same segment
+when a segment map is given, spline gap filling of short gaps (``reconstruct.gapfill``),
+zero-phase Butterworth filtering (``reconstruct.filtering``) and rigidity flags
+(``reconstruct.rigidity``, with a segment map).
 Conventions: docs/conventions.md [camera-order], [arrays], [units].
 """
 from __future__ import annotations
@@ -21,12 +23,13 @@ from capture.detections import Detections2D
 from reconstruct.correspondence import (CorrespondenceConfig, EpipolarGeometry,
                                         epipolar_geometry, match_frame)
 from reconstruct.filtering import butterworth_lowpass
-from reconstruct.gapfill import fill_gaps_spline
+from reconstruct.gapfill import fill_gaps_rigid, fill_gaps_spline
+from reconstruct.rigidity import rigidity_flags
 from reconstruct.tracking import TrackingConfig, track
 from reconstruct.triangulation import rig_arrays
 from reconstruct.types import MarkerCloudSequence, PointCloud, Trajectories
 
-__all__ = ["ReconstructionConfig", "reconstruct_sequence", "reconstruct_clouds"]
+__all__ = ["ReconstructionConfig", "reconstruct_sequence", "reconstruct_clouds", "postprocess"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -40,6 +43,7 @@ class ReconstructionConfig:
         filter_cutoff_hz: Butterworth low-pass cutoff (None: no filtering).
         filter_order: Butterworth order.
         chunk_frames: frames per parallel work item.
+        rigidity_threshold_m: rigidity-test tolerance on marker distances within a segment.
     """
 
     correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
@@ -48,6 +52,7 @@ class ReconstructionConfig:
     filter_cutoff_hz: float | None = None
     filter_order: int = 2
     chunk_frames: int = 240
+    rigidity_threshold_m: float = 0.01
 
     def __post_init__(self):
         if self.fill_max_gap < 0:
@@ -137,15 +142,59 @@ def reconstruct_clouds(detections: Detections2D, rig: Rig,
     return MarkerCloudSequence(clouds=clouds, rate_hz=detections.rate_hz)
 
 
+def _segment_indices(labels, segments) -> list[list[int]]:
+    idx = {n: i for i, n in enumerate(labels)}
+    out = []
+    for seg in segments:
+        if isinstance(seg, str):
+            raise TypeError(f"segments must be sequences of labels, got the string {seg!r}")
+        unknown = [n for n in seg if n not in idx]
+        if unknown:
+            raise ValueError(f"segment labels {unknown} are not trajectory labels")
+        out.append([idx[n] for n in seg])
+    return out
+
+
+def postprocess(traj: Trajectories, config: ReconstructionConfig | None = None,
+                segments=None) -> Trajectories:
+    """Gap filling, filtering and rigidity flags of tracked trajectories.
+
+    ``segments``: None, or groups of trajectory labels, one group per rigid segment (known
+    once trajectories are labelled). With it, missing samples are first filled rigidly
+    (``gapfill.fill_gaps_rigid``: Kabsch of >= 3 other markers of the segment, any gap
+    length), then gaps of at most ``fill_max_gap`` frames by cubic spline, then the
+    Butterworth filter; the rigidity test flags samples of the measured (unfilled) data.
+    """
+    config = config or ReconstructionConfig()
+    if not traj.n_markers:
+        return traj
+    pos, filled = traj.positions, traj.filled
+    flags = traj.rigidity_flag
+    if segments is not None:
+        groups = _segment_indices(traj.labels, segments)
+        flags = rigidity_flags(pos, groups, config.rigidity_threshold_m)
+        pos, filled = fill_gaps_rigid(pos, groups, filled=filled)
+    if config.fill_max_gap > 0:
+        pos, f2 = fill_gaps_spline(pos, config.fill_max_gap)
+        filled = filled | f2
+    if config.filter_cutoff_hz is not None:
+        pos = butterworth_lowpass(pos, traj.rate_hz, config.filter_cutoff_hz,
+                                  order=config.filter_order)
+    if pos is traj.positions and flags is traj.rigidity_flag:
+        return traj
+    return traj.with_(positions=pos, filled=filled, rigidity_flag=flags)
+
+
 def reconstruct_sequence(detections: Detections2D, rig: Rig,
                          config: ReconstructionConfig | None = None,
                          progress: Callable[[int, int], None] | None = None,
-                         workers: int | None = None, rate_hz: float | None = None
-                         ) -> tuple[MarkerCloudSequence, Trajectories]:
+                         workers: int | None = None, rate_hz: float | None = None,
+                         segments=None) -> tuple[MarkerCloudSequence, Trajectories]:
     """Reconstruct trajectories from the 2D detections of a calibrated rig.
 
     Returns (point clouds of every frame, trajectories ``T1..TM`` with NaN gaps and the
-    ``filled`` mask of spline-filled samples). ``rate_hz`` overrides ``detections.rate_hz``.
+    ``filled`` mask of gap-filled samples). ``rate_hz`` overrides ``detections.rate_hz``.
+    ``segments``: groups of trajectory labels per rigid segment, see :func:`postprocess`.
     """
     config = config or ReconstructionConfig()
     rate = rate_hz or detections.rate_hz
@@ -154,11 +203,4 @@ def reconstruct_sequence(detections: Detections2D, rig: Rig,
     clouds = reconstruct_clouds(detections, rig, config.correspondence, progress, workers,
                                 config.chunk_frames)
     traj = track(clouds, config.tracking, rate_hz=rate)
-    pos, filled = traj.positions, traj.filled
-    if config.fill_max_gap > 0 and traj.n_markers:
-        pos, filled = fill_gaps_spline(pos, config.fill_max_gap)
-    if config.filter_cutoff_hz is not None and traj.n_markers:
-        pos = butterworth_lowpass(pos, rate, config.filter_cutoff_hz, order=config.filter_order)
-    if pos is not traj.positions:
-        traj = traj.with_(positions=pos, filled=filled)
-    return clouds, traj
+    return clouds, postprocess(traj, config, segments)
