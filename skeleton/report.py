@@ -63,7 +63,7 @@ def skeleton_to_dict(rigid: RigidSkeleton, extra: dict | None = None) -> dict:
             "bone_length_m": float(rigid.bone_lengths[s]),
             "hinge_axis_parent": _list(rigid.hinge_axes_parent[s]),
             "hinge_axis_child": _list(rigid.hinge_axes_child[s]),
-            "residual_mm": _list([1e3 * rigid.joint_residual_m[s]])[0],
+            "residual_m": _list([rigid.joint_residual_m[s]])[0],
         })
     out = {"format": FORMAT, "units": "m",
            "frames": "segment frames: origin at the proximal joint (root: markers' centroid), "
@@ -97,7 +97,7 @@ def skeleton_from_dict(d: dict) -> RigidSkeleton:
         hinge[c] = j["type"] == "hinge"
         ap[c] = _arr(j["hinge_axis_parent"])
         ac[c] = _arr(j["hinge_axis_child"])
-        res[c] = np.nan if j["residual_mm"] is None else j["residual_mm"] / 1e3
+        res[c] = np.nan if j["residual_m"] is None else j["residual_m"]
     return RigidSkeleton(
         segment_names=tuple(names), parents=parents, root=idx[d["root"]],
         marker_names=tuple(mnames),

@@ -1,0 +1,69 @@
+"""mocap skeleton: a C3D / TRC from a hw_sim figure -> BVH + skeleton JSON + tables."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hw_sim.articulated import animate, random_tree
+from mocap.cli import main
+from reconstruct.marker_files import MarkerData, write_markers
+from skeleton.app import run_skeleton
+from skeleton.report import read_skeleton_json
+from tests.skeleton._figures import fragment, joint_errors, segment_map
+
+
+@pytest.fixture(scope="module")
+def figure():
+    fig = random_tree(5, (3, 4), rng=8)
+    return fig, animate(fig, 240, rng=8)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+@pytest.mark.parametrize("suffix", [".c3d", ".trc"])
+def test_cli_writes_bvh_and_report(tmp_path, capsys, figure, suffix):
+    fig, mo = figure
+    src = write_markers(MarkerData(positions=mo.markers, labels=fig.marker_names,
+                                   rate_hz=mo.rate_hz), tmp_path / f"m{suffix}")
+    bvh, rep = tmp_path / "s.bvh", tmp_path / "s.json"
+    code = main(["skeleton", str(src), "-o", str(bvh), "--report", str(rep), "--seed", "1"])
+    out = capsys.readouterr()
+    assert code == 0
+    assert "[skeleton] segments: 5" in out.err and "fit back" in out.err
+    assert "5 segments, " in out.out and "Average deviation" in out.out
+    rig = read_skeleton_json(rep)
+    assert rig.n_segments == 5 and rig.marker_names == fig.marker_names
+    text = bvh.read_text()
+    assert text.startswith("HIERARCHY") and text.count("JOINT ") == 4
+    assert "Frames: 240" in text
+    # files store mm with float32 (C3D) / 6 decimals (TRC): deviations stay sub-0.1 mm
+    import json
+    d = json.loads(rep.read_text())
+    assert d["extra"]["mean_marker_deviation_mm"] < 0.1
+
+
+def test_cli_segments_flag_and_missing_file(tmp_path, capsys, figure):
+    fig, mo = figure
+    src = write_markers(MarkerData(positions=mo.markers, labels=fig.marker_names,
+                                   rate_hz=mo.rate_hz), tmp_path / "m.trc")
+    assert main(["skeleton", str(src), "-o", str(tmp_path / "a.bvh"), "--segments", "4"]) == 0
+    assert "4 segments, " in capsys.readouterr().out
+    assert main(["skeleton", str(tmp_path / "nope.c3d"), "-o", str(tmp_path / "b.bvh")]) == 2
+
+
+def test_run_skeleton_on_tracker_fragments(figure):
+    """The library entry: fragments with new ids -> one id per marker -> the true skeleton."""
+    fig, mo = figure
+    X, owner = fragment(mo.markers, 3, n_gaps=(1, 3), gap_frames=(3, 20))
+    labels = tuple(f"T{i:03d}" for i in range(X.shape[1]))
+    run = run_skeleton(MarkerData(positions=X, labels=labels, rate_hz=mo.rate_hz),
+                       n_segments=None, rng=0)
+    assert run.markersets.n_markers == fig.n_markers
+    phys = np.array([owner[g[0]] for g in run.markersets.groups])
+    assert sorted(phys) == list(range(fig.n_markers))
+    # segment labels of the merged markers, in truth order
+    lab = np.empty(fig.n_markers, int)
+    lab[phys] = run.result.labels
+    segmap = segment_map(fig, lab)
+    assert segmap is not None and run.rigid.n_segments == fig.n_segments
+    err = joint_errors(fig, mo, run.result.parents, run.fit.joint_centres, segmap)
+    assert np.nanmedian(err) < 1e-6

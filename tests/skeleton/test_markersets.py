@@ -1,0 +1,90 @@
+"""Marker sets: tracker fragments (new id at every occlusion) merged into physical markers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hw_sim.articulated import animate, humanoid, random_tree
+from skeleton.markersets import merge_fragments
+from tests.skeleton._figures import fragment
+
+MIN_FRAMES = 10
+NOISE_M = 1e-3
+MIN_SPACING_M = 0.02   # real marker sets keep markers apart (14 mm markers cannot overlap)
+
+
+def _spacing(fig) -> float:
+    """Smallest distance between two markers of one segment."""
+    d = np.inf
+    for s in range(fig.n_segments):
+        P = fig.marker_offsets[fig.marker_segment == s]
+        D = np.linalg.norm(P[:, None] - P[None], axis=2) + np.eye(len(P)) * 1e9
+        d = min(d, D.min())
+    return d
+
+
+def _physical_tree(n, seed):
+    """random_tree with markers at least MIN_SPACING_M apart (hw_sim may place two markers
+    a few mm apart, which no real marker set does): the first such seed from ``seed``."""
+    for k in range(seed, seed + 100):
+        fig = random_tree(n, (2, 4), rng=k)
+        if _spacing(fig) >= MIN_SPACING_M:
+            return fig, k
+    raise AssertionError("no physical figure")
+
+
+def _check(fig, X, owner, ms, truth):
+    # every merged marker holds fragments of one physical marker ...
+    phys = [{int(owner[f]) for f in g} for g in ms.groups]
+    assert all(len(p) == 1 for p in phys)
+    # ... and every physical marker has exactly one id
+    assert sorted(p.pop() for p in phys) == list(range(fig.n_markers))
+    # ghosts and only too-short fragments are dropped
+    n_seen = (~np.isnan(X[..., 0])).sum(0)
+    assert all(n_seen[f] < MIN_FRAMES for f in ms.dropped)
+    assert set(np.flatnonzero(owner == -1)) <= set(ms.dropped)
+    # merged positions are the fragments' (the truth where seen)
+    for k, g in enumerate(ms.groups):
+        m = owner[g[0]]
+        seen = ~np.isnan(ms.positions[:, k, 0])
+        assert np.abs(ms.positions[seen, k] - truth[seen, m]).max() < 6 * NOISE_M
+
+
+@pytest.mark.parametrize("seed,noise", [(0, 0.0), (1, NOISE_M), (2, NOISE_M)])
+def test_fragments_merge_to_physical_markers(seed, noise):
+    fig = humanoid(rng=seed) if seed == 0 else _physical_tree(8 + seed, seed)[0]
+    assert _spacing(fig) >= MIN_SPACING_M
+    mo = animate(fig, 600, rng=seed)
+    meas = mo.markers + np.random.default_rng(9).normal(0, noise, mo.markers.shape)
+    X, owner = fragment(meas, seed)
+    assert X.shape[1] > 2 * fig.n_markers            # heavily fragmented
+    ms = merge_fragments(X, min_frames=MIN_FRAMES)
+    assert ms.n_min <= fig.n_markers
+    _check(fig, X, owner, ms, mo.markers)
+
+
+def test_nothing_to_merge_keeps_ids():
+    fig = random_tree(5, (3, 4), rng=4)
+    mo = animate(fig, 200, rng=4)
+    ms = merge_fragments(mo.markers)
+    assert ms.groups == tuple((m,) for m in range(fig.n_markers)) and ms.dropped == ()
+    np.testing.assert_array_equal(ms.positions, mo.markers)
+
+
+def test_overlapping_fragments_never_merge():
+    """Two markers 5 mm apart, each seen half of the time but overlapping in 20 frames."""
+    fig = random_tree(3, (3, 3), rng=2)
+    mo = animate(fig, 200, rng=2)
+    X = np.concatenate([mo.markers, mo.markers[:, :1] + 0.005], 1)
+    X[:90, 0] = np.nan
+    X[110:, -1] = np.nan
+    ms = merge_fragments(X)
+    assert ms.n_markers == X.shape[1]
+    assert np.isinf(ms.distance[0, -1])
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="trajectories.shape"):
+        merge_fragments(np.zeros((10, 3)))
+    with pytest.raises(ValueError, match="neighbours=2"):
+        merge_fragments(np.zeros((10, 4, 3)), neighbours=2)
