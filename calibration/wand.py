@@ -18,7 +18,8 @@ from calibration.camera import Camera, Rig
 from calibration.init_extrinsics import initial_poses, normalized, triangulate
 from calibration.points import refine_points
 from calibration.report import CalibrationReport, make_report
-from calibration.wand_detect import detect_single_point, detect_wand
+from calibration.wand_detect import (detect_single_point, detect_wand,
+                                      recover_wand_observations)
 from capture.detections import Detections2D
 
 
@@ -48,7 +49,8 @@ def _intrinsics(initial, det: Detections2D) -> list[Camera]:
 def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0, 250.0, 500.0),
                    single_point: bool = False, refine_intrinsics: bool = False, rng=None,
                    progress: Callable[[str], None] | None = None,
-                   max_frames: int | None = None, jacobian: str = "analytic") -> WandCalibration:
+                   max_frames: int | None = None, jacobian: str = "analytic",
+                   recover_gate_px: float | None = 2.0) -> WandCalibration:
     """Calibrate the extrinsics (and optionally intrinsics) of a rig from a waved wand.
 
     Args:
@@ -62,6 +64,10 @@ def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0
             (tests/calibration/test_wand.py checks bit-identical rigs for several seeds).
         max_frames: use at most this many frames with the most views (evenly spread).
         jacobian: bundle adjustment Jacobian, "analytic" or "numeric" (``bundle.JACOBIANS``).
+        recover_gate_px: after the first bundle adjustment, camera-frames the image-only
+            detection skipped (extra blobs: ambiguous, or any extra blob with a 2-marker wand)
+            are filled with the blobs within this distance of the projected wand, and the
+            bundle is run again (``wand_detect.recover_wand_observations``). None: off.
     """
     say = progress or (lambda s: None)
     seed = int(np.random.default_rng(rng).integers(2**31)) if rng is not None else 0
@@ -99,6 +105,17 @@ def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0
     say("bundle adjustment")
     ba = bundle_adjust(cams, xy, X0, spacing_m=spacing, refine_intrinsics=refine_intrinsics,
                        jac=jacobian)
+    if recover_gate_px is not None:
+        xy2 = recover_wand_observations(detections, obs.frames[frames], ba.cameras, ba.X, xy,
+                                        gate_px=recover_gate_px)
+        added = int(np.sum(np.all(np.isfinite(xy2), axis=(2, 3)))
+                    - np.sum(np.all(np.isfinite(xy), axis=(2, 3))))
+        if added:
+            say(f"{added} camera-frames recovered near the calibrated wand; bundle adjustment")
+            xy = xy2
+            ba = bundle_adjust(ba.cameras, xy, np.where(np.isfinite(ba.X), ba.X, X0),
+                               spacing_m=spacing, refine_intrinsics=refine_intrinsics,
+                               jac=jacobian)
     xin = np.where(ba.inlier[..., None], xy, np.nan)
     nf = normalized(xin, ba.cameras)
     Rf = np.stack([c.R for c in ba.cameras])

@@ -133,3 +133,49 @@ def detect_wand(det: Detections2D, cameras: list[Camera], spacing_mm, *,
         if len(found) == 1:
             xy_out[c, t] = raw[list(found[0])]
     return WandObservations(xy=xy_out, frames=frames, spacing_m=s - s[0], symmetric=symmetric)
+
+
+def recover_wand_observations(det: Detections2D, frames: np.ndarray, cameras: list[Camera],
+                              X: np.ndarray, xy: np.ndarray, *, gate_px: float = 2.0
+                              ) -> np.ndarray:
+    """Fill camera-frames the image-only detection skipped, from a calibrated first pass.
+
+    frames: (T,) frame indices (of ``det``) of the columns of xy (C, T, M, 2) px; X: (T, M, 3)
+    the wand per frame from the bundle (NaN = none). In each camera-frame without the wand
+    whose blobs include, for every marker, exactly one blob within ``gate_px`` of the marker's
+    projection (distinct blobs), those blobs are taken in the wand's order. Returns a new xy.
+    """
+    C, T, M, _ = xy.shape
+    if np.shape(frames) != (T,) or np.shape(X) != (T, M, 3):
+        raise ValueError(f"frames.shape={np.shape(frames)}, X.shape={np.shape(X)}: expected "
+                         f"({T},), ({T}, {M}, 3)")
+    out = xy.copy()
+    t_of = np.full(int(max(det.frame.max(initial=0), np.max(frames, initial=0))) + 1, -1)
+    t_of[frames] = np.arange(T)
+    keep = (det.frame < len(t_of))
+    rows = np.flatnonzero(keep)
+    rows = rows[t_of[det.frame[rows]] >= 0]
+    t_r, c_r = t_of[det.frame[rows]], det.camera[rows]
+    missing = ~np.all(np.isfinite(xy), axis=(2, 3))                       # (C, T)
+    has_x = np.all(np.isfinite(X), axis=(1, 2))
+    sel = missing[c_r, t_r] & has_x[t_r]
+    rows, t_r, c_r = rows[sel], t_r[sel], c_r[sel]
+    order = np.lexsort((c_r, t_r))
+    rows, t_r, c_r = rows[order], t_r[order], c_r[order]
+    key = t_r * C + c_r
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if len(key) else np.zeros(0, int)
+    ends = np.r_[starts[1:], len(key)]
+    for a, b in zip(starts, ends):
+        if b - a < M:
+            continue
+        c, t = int(c_r[a]), int(t_r[a])
+        cam = cameras[c]
+        if np.any(cam.depth(X[t]) <= 0):
+            continue
+        pred = cam.project(X[t])                                           # (M, 2)
+        blobs = det.xy[rows[a:b]]
+        d = np.linalg.norm(blobs[None, :, :] - pred[:, None, :], axis=2)   # (M, n)
+        near = d <= gate_px
+        if np.all(near.sum(axis=1) == 1) and np.all(near.sum(axis=0) <= 1):
+            out[c, t] = blobs[np.argmax(near, axis=1)]
+    return out
