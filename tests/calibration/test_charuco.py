@@ -72,3 +72,13 @@ def test_charuco_bad_definition_raises():
         charuco_board(cols=5, rows=5, square_m=0.03, marker_m=0.04)
     with pytest.raises(ValueError, match="unknown ArUco dictionary"):
         charuco_board(cols=5, rows=5, square_m=0.04, marker_m=0.03, dictionary="DICT_9X9")
+
+
+def test_charuco_legacy_pattern_is_diagnosed_and_usable():
+    # even row counts differ between the pre-4.6 ("legacy") and the current layout
+    views = render_views(4, cols=6, rows=4, legacy=True)
+    with pytest.raises(ValueError, match="legacy"):
+        calibrate_charuco(views, cols=6, rows=4, square_m=SQUARE_M, marker_m=MARKER_M)
+    res = calibrate_charuco(views, cols=6, rows=4, square_m=SQUARE_M, marker_m=MARKER_M,
+                            legacy=True)
+    assert res.ok and res.rms_px < RMS_MAX_PX
