@@ -94,7 +94,8 @@ class CalibrationReport:
             for c, n in enumerate(self.camera_names):
                 e = np.linalg.norm(residual_px[c].reshape(-1, 2), axis=1)
                 e = e[np.isfinite(e)]
-                ax.hist(e, bins=50, histtype="step", label=n)
+                if e.size:
+                    ax.hist(e, bins=50, range=_padded(e), histtype="step", label=n)
             ax.legend(fontsize=5)
         ax.set_xlabel("reprojection error (px)")
         ax = fig.add_subplot(gs[0, 1])
@@ -107,7 +108,7 @@ class CalibrationReport:
         ax2.set_ylabel("observations")
         ax = fig.add_subplot(gs[0, 2])
         if len(self.wand_lengths_mm):
-            ax.hist(self.wand_lengths_mm, bins=60)
+            ax.hist(self.wand_lengths_mm, bins=60, range=_padded(self.wand_lengths_mm))
             ax.set_title(f"wand {self.wand_mean_mm:.2f} mm SD {self.wand_sd_mm:.3f} "
                          f"(floor {self.wand_sd_floor_mm:.3f})", fontsize=8)
         ax.set_xlabel("wand length (mm)")
@@ -125,6 +126,13 @@ class CalibrationReport:
         fig.tight_layout()
         fig.savefig(path, dpi=80)
         plt.close(fig)
+
+
+def _padded(v, min_width=1e-3):
+    """Histogram range of v at least min_width wide (exact data has a ~1e-13 spread)."""
+    lo, hi = float(np.min(v)), float(np.max(v))
+    pad = max(0.0, min_width - (hi - lo)) / 2
+    return lo - pad, hi + pad
 
 
 def make_report(cameras, xy, residual_px, inlier, X, spacing_m=None, grid=(8, 8),
