@@ -34,8 +34,8 @@ from hw_sim.scenes import figure  # noqa: E402
 from reconstruct.pipeline import (ReconstructionConfig, postprocess,  # noqa: E402
                                   reconstruct_sequence)
 from reconstruct.types import Trajectories  # noqa: E402
-from tests.reconstruct.simdata import (match_points, score_clouds,  # noqa: E402
-                                       score_identity)
+from tests.reconstruct.simdata import (clean_point_errors, match_points,  # noqa: E402
+                                       score_clouds, score_identity)
 
 RATE_HZ = 120.0
 NOISE_PX = 0.05
@@ -48,27 +48,6 @@ def spurious_rate(rig, scene, fraction, rng):
     probe = observe(rig, scene, rng=rng, noise_px=0.0)
     per_cam_frame = len(probe.detections) / (scene.n_frames * len(rig))
     return fraction / (1 - fraction) * per_cam_frame
-
-
-def clean_point_errors(clouds, obs):
-    """3D errors (m) of points whose every blob is an unmerged blob of one true marker."""
-    det = obs.detections
-    sl = det.frame_slices()
-    errs = []
-    for cl in clouds.clouds:
-        if not len(cl) or cl.frame not in sl:
-            continue
-        s = sl[cl.frame]
-        cams = det.camera[s]
-        rows_of = [np.flatnonzero(cams == c) + s.start for c in range(cl.n_cameras)]
-        for k in range(len(cl)):
-            ids = [obs.marker_id[rows_of[c][cl.obs[k, c]]]
-                   for c in np.flatnonzero(cl.cameras[k])]
-            merged = [obs.merged_row[rows_of[c][cl.obs[k, c]]]
-                      for c in np.flatnonzero(cl.cameras[k])]
-            if len(set(ids)) == 1 and ids[0] >= 0 and not any(merged):
-                errs.append(np.linalg.norm(cl.points[k] - obs.positions[cl.frame, ids[0]]))
-    return np.array(errs)
 
 
 def oracle_labelled(traj, obs, tol_m=0.005):

@@ -177,3 +177,24 @@ def score_identity(traj, obs, tol_m=0.005, resolve_m=0.028):
                 unjust.append((i, int(a + f0), int(b + f0)))
     return dict(swaps=swaps, swaps_any=swaps_any, breaks=breaks, breaks_at_occlusion=at_occl,
                 unjustified=unjust)
+
+
+def clean_point_errors(clouds, obs):
+    """3D errors (m) of points whose every blob is an unmerged blob of one true marker."""
+    det = obs.detections
+    sl = det.frame_slices()
+    errs = []
+    for cl in clouds.clouds:
+        if not len(cl) or cl.frame not in sl:
+            continue
+        s = sl[cl.frame]
+        cams = det.camera[s]
+        rows_of = [np.flatnonzero(cams == c) + s.start for c in range(cl.n_cameras)]
+        for k in range(len(cl)):
+            ids = [obs.marker_id[rows_of[c][cl.obs[k, c]]]
+                   for c in np.flatnonzero(cl.cameras[k])]
+            merged = [obs.merged_row[rows_of[c][cl.obs[k, c]]]
+                      for c in np.flatnonzero(cl.cameras[k])]
+            if len(set(ids)) == 1 and ids[0] >= 0 and not any(merged):
+                errs.append(np.linalg.norm(cl.points[k] - obs.positions[cl.frame, ids[0]]))
+    return np.array(errs)
