@@ -1,11 +1,12 @@
 """Initial camera poses from wand / point observations, no prior pose knowledge.
 
-Cameras are added in breadth-first order of the maximum spanning tree of shared-observation
-counts (``scipy.sparse.csgraph`` on negated weights), rooted at camera 0 (the gauge,
-identity pose, docs/conventions.md [frames]). The root's best neighbour comes from the
-essential matrix (``cv2.findEssentialMat`` RANSAC on normalised coordinates +
-``cv2.recoverPose``); every further camera from ``cv2.solvePnPRansac`` against points
-triangulated by the cameras placed so far, which keeps one common scale along the chain.
+The first pair is camera 0 (the gauge, identity pose, docs/conventions.md [frames]) and its
+strongest neighbour in the maximum spanning tree of shared-observation counts
+(``scipy.sparse.csgraph`` on negated weights); its relative pose comes from the essential
+matrix (``cv2.findEssentialMat`` RANSAC on normalised coordinates + ``cv2.recoverPose``).
+Every further camera is added incrementally, the one seeing the most points triangulated by
+the cameras placed so far first, by ``cv2.solvePnPRansac`` against those points, which keeps
+one common scale along the chain.
 Metric scale: the median triangulated wand length equals the wand's (none in single-point
 mode: the root-to-first-neighbour baseline is 1).
 """
@@ -150,8 +151,12 @@ def initial_poses(nxy: np.ndarray, *, spacing_m=None, symmetric: bool = False,
     _, Rpc, tpc, _ = cv2.recoverPose(E, a, b, np.eye(3), mask=mask)
     R[c], t[c] = Rpc, tpc.ravel()
     placed[c] = True
-    for p, c in edges[1:]:
+    while not placed.all():
+        # next: the unplaced camera seeing the most points the placed cameras triangulate
+        # (incremental order; the spanning tree only chose the first pair)
         X = triangulate(pt, R, t, placed)
+        n_ok = np.where(placed, -1, (np.isfinite(X[:, 0])[None] & seen).sum(axis=1))
+        c = int(np.argmax(n_ok))
         ok = np.isfinite(X[:, 0]) & seen[c]
         if ok.sum() < 6:
             return InitialPoses(R=R, t=t, ok=False,
