@@ -3,8 +3,9 @@
 ``run_skeleton(markers: MarkerData, n_segments=None, rng=None, progress=None) ->
 SkeletonRun``: marker sets (``skeleton.markersets``), the solver
 (``skeleton.pipeline.solve_skeleton``), the rigid skeleton
-(``skeleton.rigid_skeleton``), the per-frame fit back (``skeleton.fit``) and the marker
-deviation table (``skeleton.report``). ``write_outputs(run, bvh_path, json_path=None)``
+(``skeleton.rigid_skeleton``), the per-frame fit back (``skeleton.fit``, closed form, then
+the whole-skeleton IK ``skeleton.ik`` unless ``ik=False``) and the marker deviation table
+(``skeleton.report``). ``write_outputs(run, bvh_path, json_path=None)``
 writes the BVH and the skeleton JSON. No algorithm lives here.
 """
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 
 from skeleton.bvh import write_bvh
 from skeleton.fit import SkeletonFit, fit_skeleton
+from skeleton.ik import refine_fit
 from skeleton.markersets import MarkerSets, merge_fragments
 from skeleton.pipeline import SkeletonResult, solve_skeleton
 from skeleton.report import DeviationTable, marker_deviation_table, write_skeleton_json
@@ -46,7 +48,7 @@ class SkeletonRun:
 
 
 def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None,
-                 merge: bool = True, min_frames: int = 10) -> SkeletonRun:
+                 merge: bool = True, min_frames: int = 10, ik: bool = True) -> SkeletonRun:
     """``markers`` is a ``reconstruct.marker_files.MarkerData`` (or anything with
     ``positions`` (T, M, 3) m, ``labels`` and ``rate_hz``)."""
     say = progress or (lambda msg: None)
@@ -66,6 +68,9 @@ def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None
     rigid = build_rigid_skeleton(X, res, marker_names=labels)
     say(f"fit back: {X.shape[0]} frames")
     fit = fit_skeleton(X, rigid, markers.rate_hz)
+    if ik:
+        say("inverse kinematics (whole skeleton per frame)")
+        fit = refine_fit(X, rigid, fit)
     dev = marker_deviation_table(X, rigid, fit)
     return SkeletonRun(trajectories=X, marker_names=labels, rate_hz=float(markers.rate_hz),
                        markersets=sets, result=res, rigid=rigid, fit=fit, deviation=dev)

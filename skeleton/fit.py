@@ -92,7 +92,28 @@ def _rotation_about(p: np.ndarray, q: np.ndarray, w: np.ndarray | None = None):
     return U @ D @ Vt, ok
 
 
-def fit_skeleton(trajectories, rigid: RigidSkeleton, rate_hz: float = 1.0) -> SkeletonFit:
+def _free_origins(traj: np.ndarray, rigid: RigidSkeleton) -> np.ndarray:
+    """(T, S, 3) each segment's origin (its proximal joint) from its own markers alone
+    (Horn/Kabsch, >= 3 visible markers), NaN elsewhere."""
+    T = traj.shape[0]
+    out = np.full((T, rigid.n_segments, 3), np.nan)
+    for s in range(rigid.n_segments):
+        idx = np.flatnonzero(rigid.marker_segment == s)
+        if idx.size < 3:
+            continue
+        X = traj[:, idx]
+        vis = ~np.isnan(X).any(2)
+        f3 = np.flatnonzero(vis.sum(1) >= 3)
+        for k in np.unique(vis[f3], axis=0) if f3.size else []:
+            fk = f3[(vis[f3] == k).all(1)]
+            src = np.broadcast_to(rigid.marker_offsets[idx[k]], (fk.size, int(k.sum()), 3))
+            _, t, ok = _kabsch_to(src, X[fk][:, k])
+            out[fk[ok], s] = t[ok]
+    return out
+
+
+def fit_skeleton(trajectories, rigid: RigidSkeleton, rate_hz: float = 1.0,
+                 child_joints: bool = True) -> SkeletonFit:
     traj = np.asarray(trajectories, np.float64)
     if traj.ndim != 3 or traj.shape[2] != 3 or traj.shape[1] != rigid.n_markers:
         raise ValueError(f"trajectories.shape={traj.shape}, expected (T, {rigid.n_markers}, 3)")
@@ -102,10 +123,17 @@ def fit_skeleton(trajectories, rigid: RigidSkeleton, rate_hz: float = 1.0) -> Sk
     tw = np.full((T, S, 3), np.nan)
     status = np.zeros((T, S), np.int8)
     seg = rigid.marker_segment
+    kids = rigid.children
+    free_origin = _free_origins(traj, rigid) if child_joints else None
     for s in rigid.order:
         idx = np.flatnonzero(seg == s)
         P = rigid.marker_offsets[idx]                              # (n, 3) in s's frame
         X = traj[:, idx]                                           # (T, n, 3)
+        if child_joints and kids[s]:
+            # the children's joints, located by the children's own markers, as extra points
+            P = np.concatenate([P, rigid.joint_offsets[list(kids[s])]])
+            X = np.concatenate([X, free_origin[:, list(kids[s])]], 1)
+            idx = np.concatenate([idx, np.full(len(kids[s]), -1)])
         vis = ~np.isnan(X).any(2)                                  # (T, n)
         nvis = vis.sum(1)
         p = rigid.parents[s]

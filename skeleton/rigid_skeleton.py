@@ -9,6 +9,8 @@ farther than one standard deviation from the first mean is its offset. The skele
 back together from the root outwards: a segment's frame has its origin at its proximal joint
 (the root's at its markers' centroid) and the orientation of the world at its reference
 frame (the first frame seeing every alignment point; one common frame when one exists).
+The root is the solver's unless that carries fewer than three markers: then the tree is
+hung from the nearest segment with three (the fit back poses the root from its markers).
 Conventions: docs/conventions.md [arrays], [units], [errors]; docs/skeleton_outputs.md.
 """
 from __future__ import annotations
@@ -128,6 +130,56 @@ def _robust_mean(cloud: np.ndarray) -> np.ndarray:
     return cloud[keep].mean(0)
 
 
+def _fit_root(parents: np.ndarray, root: int, n_markers: np.ndarray) -> int:
+    """The solver's root when it carries >= 3 markers, else the nearest segment (in joints;
+    ties: more markers, lower index) that does: the fit back poses the root from its own
+    markers (the rotation-point thesis' condition for drawing the whole figure)."""
+    if n_markers[root] >= 3 or not (n_markers >= 3).any():
+        return root
+    hops = _hops(parents, root)
+    cand = np.flatnonzero(n_markers >= 3)
+    return int(cand[np.lexsort((cand, -n_markers[cand], hops[cand]))[0]])
+
+
+def _hops(parents: np.ndarray, start: int) -> np.ndarray:
+    S = parents.size
+    adj = [set() for _ in range(S)]
+    for s, p in enumerate(parents):
+        if p >= 0:
+            adj[s].add(int(p))
+            adj[int(p)].add(s)
+    hops = np.full(S, -1)
+    hops[start] = 0
+    queue = [start]
+    for a in queue:
+        for b in sorted(adj[a]):
+            if hops[b] < 0:
+                hops[b] = hops[a] + 1
+                queue.append(b)
+    return hops
+
+
+def _reroot(parents: np.ndarray, root: int) -> np.ndarray:
+    """Parents of the same tree hung from ``root``."""
+    S = parents.size
+    adj = [set() for _ in range(S)]
+    for s, p in enumerate(parents):
+        if p >= 0:
+            adj[s].add(int(p))
+            adj[int(p)].add(s)
+    new = np.full(S, -2, np.int64)
+    new[root] = -1
+    queue = [root]
+    for a in queue:
+        for b in sorted(adj[a]):
+            if new[b] == -2:
+                new[b] = a
+                queue.append(b)
+    if (new == -2).any():
+        raise ValueError(f"parents={parents.tolist()} is not one tree")
+    return new
+
+
 def build_rigid_skeleton(trajectories, result, marker_names=None) -> RigidSkeleton:
     """Rigid skeleton from ``trajectories`` (T, M, 3) m and a ``SkeletonResult``.
 
@@ -141,9 +193,16 @@ def build_rigid_skeleton(trajectories, result, marker_names=None) -> RigidSkelet
     if labels.shape != (M,):
         raise ValueError(f"result.labels.shape={labels.shape}, expected ({M},)")
     S = int(result.n_segments)
-    parents = np.asarray(result.parents, np.int64)
-    root = int(result.root)
-    jc = np.asarray(result.joint_centres, np.float64)          # (T, S, 3) proximal joints
+    old_par = np.asarray(result.parents, np.int64)
+    n_mk = np.bincount(labels, minlength=S)
+    root = _fit_root(old_par, int(result.root), n_mk)
+    parents = _reroot(old_par, root)
+    # every edge keeps its joint (world track and fit); only its direction may flip
+    old_child = np.array([s if parents[s] < 0 or old_par[s] == parents[s] else parents[s]
+                          for s in range(S)])
+    jc_old = np.asarray(result.joint_centres, np.float64)      # (T, S, 3) proximal joints
+    jc = jc_old[:, old_child]
+    jc[:, root] = np.nan
     if marker_names is None:
         marker_names = tuple(f"M{i:03d}" for i in range(M))
     if len(marker_names) != M:
@@ -209,13 +268,16 @@ def build_rigid_skeleton(trajectories, result, marker_names=None) -> RigidSkelet
     ax_c = np.full((S, 3), np.nan)
     res = np.full(S, np.nan)
     for s in range(S):
-        j = result.joints[s]
-        if s == root or j is None:
+        if s == root:
+            continue
+        j = result.joints[old_child[s]]
+        if j is None:
             continue
         res[s] = j.residual_m
         if not (j.ok and j.hinge and np.isfinite(j.axis_local).all()):
             continue
-        ref_seg = parents[s] if j.ref == 0 else s
+        # JointFit: ref 0 is the (solver's) parent, markers_a; ref 1 the child
+        ref_seg = old_par[old_child[s]] if j.ref == 0 else old_child[s]
         # JointFit's frame: world axes at the first frame seeing all of ref_seg's markers
         ref_markers = np.flatnonzero(labels == ref_seg)
         seen = np.flatnonzero(~np.isnan(traj[:, ref_markers]).any(axis=(1, 2)))

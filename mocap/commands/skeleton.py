@@ -2,7 +2,7 @@
 
 Reads the marker file (``reconstruct.marker_files.read_markers``), runs
 ``skeleton.app.run_skeleton`` (marker sets, segments, joints, topology, rigid skeleton,
-fit back) with progress on stderr, writes the BVH (and the skeleton JSON with ``--report``)
+fit back, inverse kinematics) with progress on stderr, writes the BVH (and the skeleton JSON with ``--report``)
 and prints the summary and the per-marker deviation tables.
 """
 from __future__ import annotations
@@ -23,7 +23,8 @@ def _run(args) -> int:
     say(f"read {args.input}: {data.n_markers} trajectories, {data.n_frames} frames at "
         f"{data.rate_hz:g} Hz")
     run = run_skeleton(data, n_segments=args.segments, rng=args.seed, progress=say,
-                       merge=not args.no_merge, min_frames=args.min_frames)
+                       merge=not args.no_merge, min_frames=args.min_frames,
+                       ik=not args.closed_form)
     paths = write_outputs(run, args.output, args.report, units=args.units)
     print(summary_table(run.rigid, run.deviation))
     print()
@@ -45,5 +46,7 @@ def register(subparsers) -> None:
                    help="drop trajectory fragments shorter than this")
     p.add_argument("--no-merge", action="store_true",
                    help="trust the file's marker ids (skip merging fragments)")
+    p.add_argument("--closed-form", action="store_true",
+                   help="keep the thesis' closed-form fit (skip the whole-skeleton IK)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_run)

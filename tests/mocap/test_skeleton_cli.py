@@ -65,5 +65,5 @@ def test_run_skeleton_on_tracker_fragments(figure):
     lab[phys] = run.result.labels
     segmap = segment_map(fig, lab)
     assert segmap is not None and run.rigid.n_segments == fig.n_segments
-    err = joint_errors(fig, mo, run.result.parents, run.fit.joint_centres, segmap)
+    err = joint_errors(fig, mo, run.rigid.parents, run.fit.joint_centres, segmap)
     assert np.nanmedian(err) < 1e-6
