@@ -8,21 +8,23 @@ Stages, each the code a lab would run on its own data:
    extrinsics from those 2D detections alone (intrinsics as from a prior intrinsic
    calibration). An L-frame on the floor, reconstructed with the new calibration and
    identified by its geometry, sets the world origin, axes and floor
-   (``calibration.world.align_to_reference``).
+   (``calibration.static_markers`` + ``calibration.world.align_world``).
 3. The articulated figure (45 markers, 15 body segments that hide markers) is rendered as
    8-bit IR frames with sensor noise; ``reconstruct.blobs`` finds the sub-pixel centroids
    (compared with the rendered truth: mean blob error, px).
 4. ``reconstruct.pipeline.reconstruct_sequence`` triangulates, tracks, fills and filters
    with the *wand* calibration; 3D points are compared with the true marker positions.
 5. The trajectories are written as C3D and TRC (``reconstruct.marker_files``).
+6. ``skeleton.app.run_skeleton`` solves a skeleton from the unlabelled trajectories (no
+   predefined model) and writes BVH and a skeleton JSON.
 
 Conventions: docs/conventions.md.
 """
 from __future__ import annotations
 
-import itertools
 import os
 import time
+import warnings
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +36,8 @@ from scipy.spatial import cKDTree
 
 from calibration.rig_io import save_rig
 from calibration.wand import calibrate_wand
-from calibration.world import align_to_reference
+from calibration.static_markers import static_points
+from calibration.world import align_world, l_frame_reference
 from capture.detections import Detections2D
 from hw_sim.observe import observe
 from hw_sim.render import render_scene
@@ -42,7 +45,8 @@ from hw_sim.rig import make_rig
 from hw_sim.scenes import MarkerScene, figure, wand
 from reconstruct.blobs import BlobConfig, detect_frames
 from reconstruct.marker_files import MarkerData, write_markers
-from reconstruct.pipeline import ReconstructionConfig, reconstruct_clouds, reconstruct_sequence
+from skeleton.app import run_skeleton, write_outputs
+from reconstruct.pipeline import ReconstructionConfig, reconstruct_sequence
 
 __all__ = ["DemoConfig", "DemoResult", "run_demo", "L_FRAME_M"]
 
@@ -92,6 +96,9 @@ class DemoResult:
     spurious_fraction: float        # reconstructed points matching no true marker
     rms_3d_mm: float                # reconstructed points vs truth (one-to-one, 5 mm gate)
     n_trajectories: int
+    n_segments: int                 # skeleton segments found (the figure has 15)
+    marker_deviation_mm: float      # mean measured-to-fitted marker distance (thesis table)
+    joint_error_mm: float           # median distance of solved joints to the nearest true joint
     files: dict = field(default_factory=dict)
     stage_s: dict = field(default_factory=dict)
     wall_s: float = 0.0
@@ -109,6 +116,9 @@ class DemoResult:
                                   f"{100 * self.spurious_fraction:.2f}% spurious points"),
                 ("3D RMS error vs truth", f"{self.rms_3d_mm:.3f} mm"),
                 ("trajectories", f"{self.n_trajectories}"),
+                ("skeleton", f"{self.n_segments} segments (truth 15), marker deviation "
+                             f"{self.marker_deviation_mm:.2f} mm, joint centres "
+                             f"{self.joint_error_mm:.1f} mm from the nearest true joint (median)"),
                 ("wall time", f"{self.wall_s:.1f} s (" + ", ".join(
                     f"{k} {v:.1f}" for k, v in self.stage_s.items()) + ")")]
         w = max(len(k) for k, _ in rows)
@@ -140,27 +150,14 @@ def _render_detect(args):
             np.concatenate(ar), err_sum, n_match, n_vis)
 
 
-def _identify_lframe(points: np.ndarray, reference: np.ndarray) -> np.ndarray | None:
-    """Order ``points`` (N, 3) like ``reference`` (N, 3) by matching pairwise distances."""
-    if len(points) != len(reference):
-        return None
-    d_ref = np.linalg.norm(reference[:, None] - reference[None], axis=2)
-    best, best_err = None, np.inf
-    for perm in itertools.permutations(range(len(points))):
-        p = points[list(perm)]
-        err = np.abs(np.linalg.norm(p[:, None] - p[None], axis=2) - d_ref).max()
-        if err < best_err:
-            best, best_err = p, err
-    return best if best_err < 0.01 else None
-
-
 def _centre_error_mm(a, b) -> float:
     return 1000 * max(float(np.linalg.norm(ca.center - cb.center)) for ca, cb in zip(a, b))
 
 
 def run_demo(out_dir, config: DemoConfig | None = None,
              progress: Callable[[str], None] | None = None) -> DemoResult:
-    """Run the whole simulated pipeline and write ``rig.toml``, ``markers.c3d``/``.trc``."""
+    """Run the whole simulated pipeline; write ``rig.toml``, ``markers.c3d``/``.trc``,
+    ``skeleton.bvh``/``.json``."""
     cfg = config or DemoConfig()
     say = progress or (lambda s: None)
     out = Path(out_dir)
@@ -184,14 +181,13 @@ def run_demo(out_dir, config: DemoConfig | None = None,
     # world frame from an L-frame lying on the floor at the origin
     lscene = MarkerScene(positions=np.repeat(L_FRAME_M[None], 30, axis=0),
                          marker_diameter_m=np.full(len(L_FRAME_M), 0.014),
-                         rate_hz=cfg.rate_hz, labels=("o", "x1", "x2", "y"))
+                         rate_hz=cfg.rate_hz, labels=("origin", "x_end", "y_end", "x_mid"))
     lobs = observe(true_rig, lscene, rng=seeds[3], noise_px=cfg.noise_px)
-    lclouds = reconstruct_clouds(lobs.detections, cal.rig)
-    found = [c.points for c in lclouds.clouds if len(c.points) == len(L_FRAME_M)]
-    ordered = [p for p in (_identify_lframe(f, L_FRAME_M) for f in found) if p is not None]
-    if not ordered:
-        raise RuntimeError("L-frame not found: no frame shows its 4 markers with its geometry")
-    rig, lrms = align_to_reference(cal.rig, np.mean(ordered, axis=0), L_FRAME_M)
+    sp = static_points(lobs.detections, cal.rig)
+    world = align_world(cal.rig, sp.points, L_FRAME_M)
+    if not world.ok:
+        raise RuntimeError(f"world alignment failed: {world.reason}")
+    rig, lrms = world.rig, world.rms_m
     rig_path = out / "rig.toml"
     save_rig(rig, rig_path)
     cal_err = _centre_error_mm(rig, true_rig)
@@ -255,13 +251,40 @@ def run_demo(out_dir, config: DemoConfig | None = None,
         p = out / f"markers{suffix}"
         write_markers(md, p)
         files[suffix] = p
+    # 6. skeleton without a predefined model, from the reconstructed trajectories
+    t0 = time.perf_counter()
+    say("skeleton")
+    sk = run_skeleton(md, rng=int(seeds[6]), progress=lambda m: say(f"  {m}"))
+    for p in write_outputs(sk, out / "skeleton.bvh", out / "skeleton.json"):
+        files[p.suffix] = p
+    joint_err = _joint_error_mm(sk.result.joint_centres, scene.joint_centres)
+    stage["skeleton"] = time.perf_counter() - t0
     return DemoResult(n_cameras=cfg.n_cameras, n_frames=T, n_markers=truth.shape[1],
                       blob_error_px=blob_err, blob_recall=recall,
                       calib_centre_error_mm=cal_err, calib_reproj_px=reproj,
                       lframe_rms_mm=1000 * lrms, reconstructed_fraction=frac,
                       spurious_fraction=spurious, rms_3d_mm=rms,
-                      n_trajectories=traj.positions.shape[1], files=files, stage_s=stage,
+                      n_trajectories=traj.positions.shape[1],
+                      n_segments=int(sk.result.n_segments),
+                      marker_deviation_mm=1000 * float(sk.deviation.overall_mean_m),
+                      joint_error_mm=joint_err, files=files, stage_s=stage,
                       wall_s=time.perf_counter() - t_start)
+
+
+def _joint_error_mm(solved, truth) -> float:
+    """Median over solved joints of the median distance (mm) to the true joint that lies
+    closest to it over the take; NaN when there is no truth or no joint."""
+    if truth is None:
+        return float("nan")
+    S = np.asarray(solved)                                    # (T, S, 3), NaN for the root
+    G = np.asarray(truth)                                     # (T, J, 3)
+    d = np.linalg.norm(S[:, :, None] - G[:, None], axis=3)    # (T, S, J)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)      # the root joint is all-NaN
+        med = np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=0)   # (S, J)
+    best = np.nanmin(np.where(np.isfinite(med), med, np.inf), axis=1)
+    best = best[np.isfinite(best)]
+    return 1000 * float(np.median(best)) if best.size else float("nan")
 
 
 def _match_one_to_one(points, truth, want, gate_m) -> np.ndarray:

@@ -13,6 +13,7 @@ In memory: :class:`MarkerData` with positions ``(T, M, 3)`` in metres, NaN gaps
 from __future__ import annotations
 
 import csv
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -109,7 +110,8 @@ def write_c3d(data: MarkerData, path) -> Path:
     if data.first_frame != 1:
         w.set_start_frame(int(data.first_frame))
     tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "wb") as h:
+    with open(tmp, "wb") as h, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="No analog data found")  # markers only
         w.write(h)
     tmp.replace(path)
     return path
@@ -124,7 +126,9 @@ def read_c3d(path) -> MarkerData:
         raise FileNotFoundError(f"marker file not found: {path}")
     with open(path, "rb") as h:
         try:
-            r = c3d.Reader(h)
+            with warnings.catch_warnings():   # a marker-only file has no analog data: normal
+                warnings.filterwarnings("ignore", message="No analog data found")
+                r = c3d.Reader(h)
         except Exception as e:  # the library raises bare errors on a corrupt header
             raise ValueError(f"{path}: not a readable C3D file: {e}") from e
         units = "mm"

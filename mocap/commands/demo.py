@@ -7,7 +7,7 @@ import sys
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the simulated rig end to end: wand calibration, "
-                       "IR frames, blobs, reconstruction, C3D/TRC",
+                       "IR frames, blobs, reconstruction, C3D/TRC, skeleton BVH",
                        description=__doc__)
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--cameras", type=int, default=8, help="number of cameras (default 8)")

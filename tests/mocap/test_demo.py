@@ -13,7 +13,7 @@ from reconstruct.marker_files import read_markers
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    cfg = DemoConfig(figure_frames=30, wand_frames=400, workers=1, seed=3)
+    cfg = DemoConfig(figure_frames=120, wand_frames=400, workers=2, seed=3)
     return out, run_demo(out, cfg)
 
 
@@ -29,7 +29,7 @@ def test_demo_accuracy_against_truth(demo):
     assert res.reconstructed_fraction > 0.9
     assert res.spurious_fraction < 0.05
     assert res.rms_3d_mm < 1.0
-    assert res.n_markers == 45 and res.n_frames == 30
+    assert res.n_markers == 45 and res.n_frames == 120
 
 
 def test_demo_files_read_back_by_independent_reader(demo):
@@ -55,3 +55,14 @@ def test_demo_cli_rejects_bad_config(tmp_path, capsys):
     with pytest.raises(ValueError, match="n_cameras=1"):
         DemoConfig(n_cameras=1)
     assert main(["demo", "--out", str(tmp_path), "--cameras", "1"]) != 0
+
+
+def test_demo_skeleton_outputs(demo):
+    bvhio = pytest.importorskip("bvhio")
+    out, res = demo
+    assert (out / "skeleton.bvh").exists() and (out / "skeleton.json").exists()
+    root = bvhio.readAsHierarchy(str(out / "skeleton.bvh"))
+    n_joints = len(root.layout())
+    assert n_joints >= res.n_segments
+    assert 10 <= res.n_segments <= 20          # the figure has 15 body segments
+    assert res.marker_deviation_mm < 2.0       # fitted vs measured markers
