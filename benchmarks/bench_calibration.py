@@ -3,6 +3,8 @@
 Per rig size (8/12/16 cameras, 2,000 frames, 0.05 px blob noise, no pose prior):
 - solve time with the analytic sparse Jacobian, and the same calibration with the numeric
   (finite-difference, ``jac_sparsity``) Jacobian measured in the same run: ratio numeric/analytic;
+  for 8 cameras (all sizes with --old-all) also the previous path (numeric Jacobian, threaded
+  BLAS, strict ftol in every round);
 - camera centre / orientation errors vs truth (initial poses before bundle adjustment as the
   accuracy baseline);
 - wand length SD as the report gives it (ML triangulation with the estimated calibration),
@@ -11,7 +13,7 @@ Per rig size (8/12/16 cameras, 2,000 frames, 0.05 px blob noise, no pose prior):
   the exact (noise-free) projections (pure calibration error).
 Last row: 8 cameras with ~2 spurious blobs per image, the recovery pass off vs on.
 Usage: .venv/bin/python benchmarks/bench_calibration.py [n_frames] [cams,...] [--no-numeric]
-       [--no-clutter]
+       [--no-clutter] [--old-all]
 """
 import sys
 import time
@@ -26,6 +28,11 @@ from calibration.wand_detect import detect_wand
 from hw_sim.observe import observe
 from hw_sim.rig import make_rig
 from hw_sim.scenes import wand
+
+
+# the bundle settings before the analytic Jacobian (commit 5fadf77): numeric Jacobian, BLAS
+# threads left at the library default, ftol 1e-8 in the outlier rounds too
+OLD_PATH = dict(ftol_outlier_rounds=1e-8, blas_threads=None)
 
 
 def errors(Rs, ts, truth):
@@ -72,6 +79,13 @@ def main():
             cn, an = errors([c.R for c in resn.rig], [c.t for c in resn.rig], rig)
             line += (f", numeric-Jacobian baseline {dtn:.1f} s, ratio numeric/analytic "
                      f"{dtn / dt:.2f} (numeric result: centre {cn:.3f} mm, angle {an:.4f} deg)")
+        if numeric and (C == 8 or "--old-all" in sys.argv):
+            t0 = time.perf_counter()
+            calibrate_wand(ob.detections, initial_intrinsics=init, jacobian="numeric",
+                           bundle_options=OLD_PATH)
+            dto = time.perf_counter() - t0
+            line += (f"\n   previous path (numeric Jacobian, threaded BLAS, ftol 1e-8 in every "
+                     f"round) {dto:.1f} s, ratio previous/analytic {dto / dt:.1f}")
         print(line, flush=True)
         obs = detect_wand(ob.detections, init, (0, 250, 500))
         ip, _ = initial_poses(normalized(obs.xy, init), spacing_m=obs.spacing_m, symmetric=True)

@@ -311,13 +311,16 @@ def bundle_adjust(cameras: list[Camera], xy: np.ndarray, X0: np.ndarray, *, spac
                   refine_intrinsics: bool = False, length_weight: float = 1e5,
                   thresholds_px=(10.0, 3.0), sigma_k: float = 5.0, f_scale_px: float = 1.0,
                   max_nfev: int = 200, jac: str = "analytic",
-                  ftol_outlier_rounds: float = 1e-4) -> BundleResult:
+                  ftol_outlier_rounds: float = 1e-4, blas_threads: int | None = 1
+                  ) -> BundleResult:
     """Refine poses (and intrinsics) from xy (C, T, M, 2) raw px with initial points X0 (T, M, 3).
 
     jac: "analytic" (closed-form sparse Jacobian) or "numeric" (finite differences with
     ``jac_sparsity``; the baseline the benchmark compares against).
-    BLAS runs single-threaded inside the solver: its vectors (~1e5) are too short to gain from
-    threads, and on a shared 2-core machine threaded level-1 BLAS in ``lsmr`` cost 3x the time.
+    blas_threads: BLAS threads inside the solver (None: leave the library default). One by
+    default: its vectors (~1e5) are too short to gain from threads, and on a shared 2-core
+    machine threaded level-1 BLAS in ``lsmr`` cost 3x the time.
+    ftol_outlier_rounds: ``ftol`` of the rounds before the last (the last uses 1e-8).
     """
     if jac not in JACOBIANS:
         raise ValueError(f"jac={jac!r}, expected one of {JACOBIANS}")
@@ -346,7 +349,7 @@ def bundle_adjust(cameras: list[Camera], xy: np.ndarray, X0: np.ndarray, *, spac
         last = rnd == len(limits)
         # outlier rounds only need the residuals to ~1e-4 of the cost (their long flat tails
         # with outliers present cost hundreds of iterations at ftol 1e-8); the last is strict
-        with threadpool_limits(limits=1, user_api="blas"):
+        with threadpool_limits(limits=blas_threads, user_api="blas"):
             res = least_squares(prob.fun, p, method="trf", x_scale="jac", loss="soft_l1",
                                 f_scale=f_scale_px, max_nfev=max_nfev, tr_solver="lsmr",
                                 ftol=1e-8 if last else ftol_outlier_rounds, **kw)

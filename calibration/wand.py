@@ -50,7 +50,8 @@ def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0
                    single_point: bool = False, refine_intrinsics: bool = False, rng=None,
                    progress: Callable[[str], None] | None = None,
                    max_frames: int | None = None, jacobian: str = "analytic",
-                   recover_gate_px: float | None = 2.0) -> WandCalibration:
+                   recover_gate_px: float | None = 2.0,
+                   bundle_options: dict | None = None) -> WandCalibration:
     """Calibrate the extrinsics (and optionally intrinsics) of a rig from a waved wand.
 
     Args:
@@ -68,6 +69,8 @@ def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0
             detection skipped (extra blobs: ambiguous, or any extra blob with a 2-marker wand)
             are filled with the blobs within this distance of the projected wand, and the
             bundle is run again (``wand_detect.recover_wand_observations``). None: off.
+        bundle_options: further keyword arguments of ``bundle.bundle_adjust`` (e.g. the
+            benchmark's baseline settings).
     """
     say = progress or (lambda s: None)
     seed = int(np.random.default_rng(rng).integers(2**31)) if rng is not None else 0
@@ -104,7 +107,7 @@ def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0
     X0 = np.stack([triangulate(nxy[:, :, m], init.R, init.t, use) for m in range(M)], axis=1)
     say("bundle adjustment")
     ba = bundle_adjust(cams, xy, X0, spacing_m=spacing, refine_intrinsics=refine_intrinsics,
-                       jac=jacobian)
+                       jac=jacobian, **(bundle_options or {}))
     if recover_gate_px is not None:
         xy2 = recover_wand_observations(detections, obs.frames[frames], ba.cameras, ba.X, xy,
                                         gate_px=recover_gate_px)
@@ -115,7 +118,7 @@ def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0
             xy = xy2
             ba = bundle_adjust(ba.cameras, xy, np.where(np.isfinite(ba.X), ba.X, X0),
                                spacing_m=spacing, refine_intrinsics=refine_intrinsics,
-                               jac=jacobian)
+                               jac=jacobian, **(bundle_options or {}))
     xin = np.where(ba.inlier[..., None], xy, np.nan)
     nf = normalized(xin, ba.cameras)
     Rf = np.stack([c.R for c in ba.cameras])
