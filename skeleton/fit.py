@@ -1,6 +1,7 @@
 """Per-frame fit of a rigid skeleton back to marker data: hierarchical and closed form.
 
-``fit_skeleton(trajectories (T, M, 3), rigid: RigidSkeleton) -> SkeletonFit``. The thesis'
+``fit_skeleton(trajectories (T, M, 3), rigid: RigidSkeleton, rate_hz=1.0,
+child_joints=True) -> SkeletonFit``. The thesis'
 fit back (000, section 3.8.2), segment by segment from the root outwards, each step a
 closed-form Horn/Kabsch rotation:
 
@@ -9,8 +10,12 @@ closed-form Horn/Kabsch rotation:
 - any other segment whose parent is fitted: its origin is its joint, placed by the parent's
   pose; it only rotates about it (the segments stay connected, 3.8.2 step 3). The joint
   centre is the extra fixed point of the rotation-point thesis (001, 5.5.1): 2 or more
-  visible markers suffice (``FIT_JOINT``); with 1 visible marker a hinge's axis (known in
+  visible points suffice (``FIT_JOINT``); with 1 visible marker a hinge's axis (known in
   the parent's frame) is the third constraint (001, case 3, ``FIT_HINGE``);
+- with ``child_joints`` (default) a segment's points also include its children's joints as
+  located by the children's own markers (Horn/Kabsch, >= 3 visible): the rotation is then
+  fitted out to the far joint instead of extrapolated from markers near the near one, which
+  keeps a parent's rotation noise from swinging the whole subtree;
 - otherwise (a ball joint with one visible marker, nothing visible, markers collinear with
   the joint) the segment and its subtree stay NaN in that frame (``FIT_NONE``).
 
