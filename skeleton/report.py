@@ -174,8 +174,9 @@ def summary_table(rigid: RigidSkeleton, deviation: DeviationTable) -> str:
         idx = rigid.marker_segment == s
         w = deviation.frames[idx]
         dev = (np.nansum(deviation.mean_m[idx] * w) / w.sum()) if w.sum() else np.nan
-        rows.append(f"{rigid.segment_names[s]:<8} {rigid.segment_names[p] if p >= 0 else '-':<8} "
-                    f"{int(idx.sum()):>7d} {('-' if p < 0 else 'hinge' if rigid.hinge[s] else 'ball'):<6} "
+        kind = "-" if p < 0 else "hinge" if rigid.hinge[s] else "ball"
+        parent = rigid.segment_names[p] if p >= 0 else "-"
+        rows.append(f"{rigid.segment_names[s]:<8} {parent:<8} {int(idx.sum()):>7d} {kind:<6} "
                     f"{1e3 * rigid.bone_lengths[s]:>8.1f} {1e3 * rigid.joint_residual_m[s]:>11.3f} "
                     f"{1e3 * dev:>11.3f}")
     rows.append(f"{rigid.n_segments} segments, {rigid.n_markers} markers, "

@@ -2,8 +2,8 @@
 
 Reads the marker file (``reconstruct.marker_files.read_markers``), runs
 ``skeleton.app.run_skeleton`` (marker sets, segments, joints, topology, rigid skeleton,
-fit back, inverse kinematics) with progress on stderr, writes the BVH (and the skeleton JSON with ``--report``)
-and prints the summary and the per-marker deviation tables.
+fit back, inverse kinematics) with progress on stderr, writes the BVH (and the skeleton
+JSON with ``--report``) and prints the summary and the per-marker deviation tables.
 """
 from __future__ import annotations
 
