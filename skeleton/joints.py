@@ -146,7 +146,7 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
                     hinge=hinge, axis_local=axis, sv_ratio=ratio, cost_m=cost)
 
 
-WORLD_MAX_FRAMES = 60
+FRAME_ITERS = 8
 
 
 def _fit_world(traj: np.ndarray, idx: np.ndarray) -> JointFit:
@@ -159,8 +159,17 @@ def _fit_world(traj: np.ndarray, idx: np.ndarray) -> JointFit:
     if full.size < MIN_FRAMES:
         return _fail(T, f"only {full.size} frames see both segments")
     X = traj[full][:, idx]                                  # (F, N, 3)
-    c, r, ssr = _world_solve(X, idx.size // 2)
-    res = float(np.sqrt(ssr / X.shape[0] / X.shape[1]))
+    sub = np.linspace(0, full.size - 1, min(full.size, COST_FRAMES)).astype(int)
+    cs, r, _ = _world_solve(X[sub], idx.size // 2)
+    c = np.stack([np.interp(np.arange(full.size), sub, cs[:, k]) for k in range(3)], 1)
+    for _ in range(FRAME_ITERS):   # every frame's centre at the fitted distances r (Gauss-Newton)
+        D = X - c[:, None]
+        d = np.maximum(np.linalg.norm(D, axis=2), 1e-12)
+        u = D / d[..., None]
+        e = d - r
+        A = np.swapaxes(u, 1, 2) @ u + 1e-12 * np.eye(3)
+        c = c + np.linalg.solve(A, (np.swapaxes(u, 1, 2) @ e[..., None]))[..., 0]
+    res = float(np.sqrt(np.mean((np.linalg.norm(X - c[:, None], axis=2) - r) ** 2)))
     world = np.full((T, 3), np.nan)
     world[full] = c
     n = np.full(3, np.nan)
@@ -175,62 +184,79 @@ COST_ITERS = 60
 SCREEN_FRAMES = 40
 SCREEN_ITERS = 40
 REFINE_STARTS = 2
+LINE_STARTS = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5)   # starts along each 2-marker line (marker 0 -> marker 1)
+WORLD_ITERS = 200
+LM_RTOL = 1e-7           # stop: relative decrease of the sum of squares
+LM_ATOL_M = 1e-10        # stop: rms residual
 
 
 def _world_lm(X: np.ndarray, c: np.ndarray, r: np.ndarray, iters: int = COST_ITERS):
     """Levenberg-Marquardt on the thesis' world-frame cost ``sum (|x_fn - c_f| - r_n)^2``
     over per-frame centres ``c`` (F, 3) and constant distances ``r`` (N,), with the analytic
-    Jacobian and the per-frame 3x3 blocks eliminated (Schur complement on ``r``)."""
-    F, N = X.shape[:2]
+    Jacobian and the per-frame 3x3 blocks eliminated (Schur complement on ``r``).
+    Batched: X (B, F, N, 3), c (B, F, 3), r (B, N) solve B problems at once."""
+    single = X.ndim == 3
+    if single:
+        X, c, r = X[None], c[None], r[None]
+    X, c, r = np.asarray(X, float), np.array(c, float), np.array(r, float)
+    B, F, N = X.shape[:3]
 
     def resid(c, r):
-        D = X - c[:, None]
-        d = np.linalg.norm(D, axis=2)
-        return D, d, d - r
+        D = X - c[:, :, None]
+        d = np.linalg.norm(D, axis=3)
+        return D, d, d - r[:, None]
 
     D, d, e = resid(c, r)
-    ssr = float((e**2).sum())
-    lam = 1e-3
+    ssr = (e**2).sum((1, 2))
+    lam = np.full(B, 1e-3)
+    live = np.ones(B, bool)
     eye = np.eye(3)
     for _ in range(iters):
-        u = D / np.maximum(d, 1e-12)[..., None]                   # (F, N, 3); J_c = -u
-        A = np.einsum("fni,fnj->fij", u, u)
-        gc = -np.einsum("fni,fn->fi", u, e)                      # J_c^T e
-        gr = -e.sum(0)                                           # J_r^T e
-        Ad = A + lam * (A * eye).sum(2)[:, :, None] * eye + 1e-12 * eye
+        u = D / np.maximum(d, 1e-12)[..., None]                   # (B, F, N, 3); J_c = -u
+        ut = np.swapaxes(u, 2, 3)                                # (B, F, 3, N)
+        A = ut @ u                                               # (B, F, 3, 3)
+        gc = -(ut @ e[..., None])[..., 0]                        # J_c^T e (B, F, 3)
+        gr = -e.sum(1)                                           # J_r^T e (B, N)
+        Ad = A + lam[:, None, None, None] * (A * eye).sum(3)[..., None] * eye + 1e-12 * eye
         Ainv = np.linalg.inv(Ad)
-        AiB = np.einsum("fij,fnj->fin", Ainv, u)                 # (F, 3, N)
-        Sm = (1 + lam) * F * np.eye(N) - np.einsum("fni,fim->nm", u, AiB)
-        rhs = -gr + np.einsum("fni,fi->n", u, np.einsum("fij,fj->fi", Ainv, gc))
-        dr = np.linalg.solve(Sm, rhs)
-        dc = -np.einsum("fij,fj->fi", Ainv, gc) - np.einsum("fin,n->fi", AiB, dr)
+        AiB = Ainv @ ut                                          # (B, F, 3, N)
+        Sm = ((1 + lam) * F)[:, None, None] * np.eye(N) - (u @ AiB).sum(1)
+        Aig = (Ainv @ gc[..., None])[..., 0]                     # (B, F, 3)
+        rhs = -gr + (u @ Aig[..., None])[..., 0].sum(1)
+        dr = np.linalg.solve(Sm, rhs[..., None])[..., 0]
+        dc = -Aig - (AiB @ dr[:, None, :, None])[..., 0]
         D2, d2, e2 = resid(c + dc, r + dr)
-        ssr2 = float((e2**2).sum())
-        if ssr2 < ssr:
-            small = ssr - ssr2 < 1e-12 * ssr + 1e-30
-            c, r, D, d, e, ssr = c + dc, r + dr, D2, d2, e2, ssr2
-            lam = max(lam / 4, 1e-9)
-            if small:
-                break
-        else:
-            lam *= 8
-            if lam > 1e8:
-                break
+        ssr2 = (e2**2).sum((1, 2))
+        acc = live & (ssr2 < ssr)
+        small = acc & ((ssr - ssr2 < LM_RTOL * ssr) | (ssr2 < (LM_ATOL_M**2) * F * N))
+        c[acc] += dc[acc]
+        r[acc] += dr[acc]
+        D[acc], d[acc], e[acc], ssr[acc] = D2[acc], d2[acc], e2[acc], ssr2[acc]
+        lam = np.where(acc, np.maximum(lam / 4, 1e-9), lam * 8)
+        live &= ~small & (lam <= 1e8)
+        if not live.any():
+            break
+    if single:
+        return c[0], r[0], float(ssr[0])
     return c, r, ssr
 
 
-def _four_marker_init(X: np.ndarray) -> np.ndarray | None:
-    """Closed-form centres (F, 3) for a point at constant distances from 4 markers X (F, 4, 3).
+def _four_marker_init(X: np.ndarray, extra_starts=()) -> np.ndarray | None:
+    """Closed-form-started centres (F, 3) for a point at constant distances from 4 markers
+    X (F, 4, 3).
 
     Per frame, differences of ``|c - m_j|^2 = r_j^2`` are linear: ``M_t c_t = y_t - k`` with
     rows ``2 (m_j - m_0)``, ``y_tj = |m_j|^2 - |m_0|^2`` and ``k_j = r_j^2 - r_0^2``
     constant. With ``Q_t = M_t^-1``, ``p_t = Q_t y_t - m_0t``, the remaining condition
-    ``|p_t - Q_t k|^2 = r_0^2`` is linear in (k, r_0^2, k k^T) (lifted least squares)."""
+    ``|p_t - Q_t k|^2 = r_0^2`` is linear in (k, r_0^2, k k^T) (lifted least squares; its
+    exact null vector is fixed by K = k k^T). The 4 unknowns (k, r_0) are then refined on
+    ``(|p_t - Q_t k| - r_0) / |Q_t|`` from that start and from ``extra_starts`` (centre
+    trajectories (F, 3)); the best is returned."""
     m0 = X[:, 0]
     M = 2 * (X[:, 1:4] - m0[:, None])                                   # (F, 3, 3)
     y = (X[:, 1:4] ** 2).sum(2) - (m0**2).sum(1)[:, None]
     cond = np.linalg.cond(M)
-    ok = cond < 1e4
+    ok = cond < 1e3
     if ok.sum() < 12:
         return None
     Q = np.linalg.inv(M[ok])
@@ -239,12 +265,10 @@ def _four_marker_init(X: np.ndarray) -> np.ndarray | None:
     iu = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
     A = np.column_stack([-2 * np.einsum("fki,fk->fi", Q, p), -np.ones(ok.sum())] +
                         [QQ[:, i, j] * (1 if i == j else 2) for i, j in iu])
-    w = 1 / (1 + (Q**2).sum((1, 2)))                                    # tame near-singular
+    qn = np.sqrt((Q**2).sum((1, 2)))
+    w = 1 / (1 + qn**2)                                                 # tame near-singular
     b = -(p**2).sum(1) * w
     U, sv, Vt = np.linalg.svd(A * w[:, None], full_matrices=False)
-    # The lifted system has an exact null vector (and near-null ones at small motion): solve
-    # on the 7 largest singular values, then move in the 3 smallest directions until the
-    # lifted unknowns are consistent (K = k k^T).
     th0 = Vt[:7].T @ ((U[:, :7].T @ b) / sv[:7])
     Nb = Vt[7:].T
 
@@ -253,48 +277,80 @@ def _four_marker_init(X: np.ndarray) -> np.ndarray | None:
         kk = np.outer(th[:3], th[:3])
         return np.array([th[4 + n] - kk[i, j] for n, (i, j) in enumerate(iu)])
 
-    best, k = np.inf, th0[:3]
+    cons = []
     scale = max(np.abs(th0).max(), 1e-9)
     for g in (0.0, -1.0, 1.0, -10.0, 10.0):
         sol = least_squares(incons, np.array([g * scale, 0.0, 0.0]), method="lm")
+        th = th0 + Nb @ sol.x
+        cons.append((sol.cost, np.concatenate([th[:3], [np.sqrt(max(th[3], 0.0))]])))
+    cons.sort(key=lambda z: z[0])
+    starts = [z for _, z in cons[:2]]
+    for c0 in extra_starts:
+        r = np.linalg.norm(X - c0[:, None], axis=2).mean(0)
+        starts.append(np.concatenate([r[1:] ** 2 - r[0] ** 2, [r[0]]]))
+    wq = 1 / qn
+
+    def red(z):
+        v = p - np.einsum("fij,j->fi", Q, z[:3])
+        return (np.linalg.norm(v, axis=1) - z[3]) * wq
+
+    def red_jac(z):
+        v = p - np.einsum("fij,j->fi", Q, z[:3])
+        n = np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+        J = np.empty((len(v), 4))
+        J[:, :3] = -np.einsum("fi,fij->fj", v / n, Q)
+        J[:, 3] = -1
+        return J * wq[:, None]
+
+    best, k = np.inf, starts[0][:3]
+    for z0 in starts:
+        sol = least_squares(red, z0, jac=red_jac, method="lm", max_nfev=100)
         if sol.cost < best:
-            best, k = sol.cost, (th0 + Nb @ sol.x)[:3]
+            best, k = sol.cost, sol.x[:3]
     Mi = np.linalg.pinv(M)
     return np.einsum("fij,fj->fi", Mi, y - k)
 
 
-def _world_solve(X: np.ndarray, na: int):
+def _world_solve(X: np.ndarray, na: int, multistart: bool = True):
     """World-frame joint fit for two 2-marker segments, X (F, 4, 3) with the first ``na`` = 2
-    markers on one segment: (c (F, 3), r (4,), ssr)."""
+    markers on one segment: (c (F, 3), r (4,), ssr). ``multistart=False``: only the closed-
+    form start (fast; may stop in a local minimum when the data is noisy)."""
     F = X.shape[0]
+    if not multistart:
+        lin = _four_marker_init(X)
+        if lin is not None:
+            return _world_lm(X, lin, np.linalg.norm(X - lin[:, None], axis=2).mean(0),
+                             WORLD_ITERS)
     # two 2-marker segments: the world-frame cost is very non-convex (local minima 10-20 cm
     # from the joint), so start along both marker lines, extended past the markers where
     # joints sit; screen the starts on a few frames, refine the best on all.
-    lam = np.array([-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5])
+    lam = np.array(LINE_STARTS)
     starts = [X[:, o][:, None] + lam[None, :, None] * (X[:, o + 1] - X[:, o])[:, None]
               for o in (0, na)]
     starts = np.concatenate(starts, axis=1).transpose(1, 0, 2)          # (K, F, 3)
-    lin = _four_marker_init(X)
+    lin = _four_marker_init(X, extra_starts=starts)
     if lin is not None:
         starts = np.concatenate([lin[None], starts])
     few = np.linspace(0, F - 1, min(F, SCREEN_FRAMES)).astype(int)
-    screened = []
-    for c0 in starts:
-        r0 = np.linalg.norm(X[few] - c0[few][:, None], axis=2).mean(0)
-        c, r, ssr = _world_lm(X[few], c0[few].copy(), r0, SCREEN_ITERS)
-        # the screened centres, interpolated to every frame (smooth motion)
-        call = np.stack([np.interp(np.arange(F), few, c[:, k]) for k in range(3)], 1)
-        screened.append((ssr, call, r))
-    screened.sort(key=lambda z: z[0])
-    best = (None, None, np.inf)
-    for _, c0, r in screened[:REFINE_STARTS]:
-        sol = _world_lm(X, c0.copy(), r.copy())
-        if sol[2] < best[2]:
-            best = sol
-    return best
+    sc = starts[1:] if lin is not None else starts
+    Xf = np.broadcast_to(X[few], (len(sc),) + X[few].shape)
+    r0 = np.linalg.norm(Xf - sc[:, few][:, :, None], axis=3).mean(1)
+    c, r, ssr = _world_lm(Xf, sc[:, few], r0, SCREEN_ITERS)
+    order = np.argsort(ssr)[:REFINE_STARTS]
+    # the screened centres, interpolated to every frame (smooth motion)
+    cands = [np.stack([np.interp(np.arange(F), few, c[o][:, k]) for k in range(3)], 1)
+             for o in order]
+    rads = [r[o] for o in order]
+    if lin is not None:
+        cands.insert(0, lin)
+        rads.insert(0, np.linalg.norm(X - lin[:, None], axis=2).mean(0))
+    cb, rb, sb = _world_lm(np.broadcast_to(X, (len(cands),) + X.shape), np.array(cands),
+                           np.array(rads), WORLD_ITERS)
+    o = int(np.argmin(sb))
+    return cb[o], rb[o], float(sb[o])
 
 
-def joint_cost(traj: np.ndarray, markers_a, markers_b, rng=None) -> float:
+def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True) -> float:
     """Topology cost of a candidate joint between two segments: the thesis' variance-of-
     distance cost in world coordinates (one centre per frame at constant distances from
     every marker of both segments), minimised, and normalised by its degrees of freedom:
@@ -302,7 +358,8 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, rng=None) -> float:
     whatever the marker layout (no lever-arm amplification as in a one-segment-frame fit,
     and the per-frame centres of 2+2-marker pairs cannot absorb it); a false pair adds its
     misfit. Initialised by the closed-form sphere fit (>= 3 markers on one side) and from
-    the closest cross-segment marker pairs; the lowest minimum is kept. m; inf if unfit."""
+    the closest cross-segment marker pairs; the lowest minimum is kept. m; inf if unfit.
+    ``multistart=False`` (2+2 markers only): the closed-form start alone, an upper bound."""
     traj = np.asarray(traj, np.float64)
     a, b = np.asarray(markers_a, int), np.asarray(markers_b, int)
     idx = np.concatenate([a, b])
@@ -318,5 +375,5 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, rng=None) -> float:
         refs = [k for k, m in enumerate((a, b)) if m.size >= 3]
         costs = [fit_joint(traj[sel], a, b, refine=True, ref=k).cost_m for k in refs]
         return float(np.mean(costs))
-    _, _, ssr = _world_solve(X, a.size)
+    _, _, ssr = _world_solve(X, a.size, multistart)
     return float(np.sqrt(ssr / dof))

@@ -21,6 +21,8 @@ from skeleton.topology import skeleton_tree
 __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
 
 COST_CUTOFF_HZ = 6.0   # low-pass for the topology costs (biomechanics' usual 6 Hz)
+RECHECK = 10.0         # 2+2 pairs re-searched when their quick cost is below RECHECK x ...
+RECHECK_MIN_M = 1e-5   # ... the median tree-edge cost (or this)
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
 
 
@@ -85,22 +87,35 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     # then be the largest term. Noise level: within-segment distance sd.)
     same = (seg.labels[:, None] == seg.labels[None]) & ~np.eye(seg.labels.size, dtype=bool)
     noise_m = float(np.median(seg.distance_sd[same])) if same.any() else 0.0
-    smooth = lowpass(traj, rate_hz, trim=True) if noise_m > CLEAN_NOISE_M else traj
+    noisy = noise_m > CLEAN_NOISE_M
+    smooth = lowpass(traj, rate_hz, trim=True) if noisy else traj
     cost = np.full((S, S), np.inf)
     for i in range(S):
         for j in range(i + 1, S):
-            cost[i, j] = cost[j, i] = joint_cost(smooth, members[i], members[j])
+            cost[i, j] = cost[j, i] = joint_cost(smooth, members[i], members[j],
+                                                 multistart=False)
+    # 2+2-marker pairs got only their closed-form start (an upper bound on their cost). Pairs
+    # that could still matter (below RECHECK x the median tree-edge cost, but above the
+    # noise floor) get the multi-start search.
+    floor = float(np.median(cost[tuple(skeleton_tree(cost).edges.T)]))
+    two = np.array([m.size == 2 for m in members])
+    for i, j in zip(*np.triu_indices(S, 1)):
+        if two[i] and two[j] and 1.2 * floor < cost[i, j] < max(RECHECK * floor, RECHECK_MIN_M):
+            cost[i, j] = cost[j, i] = min(cost[i, j], joint_cost(smooth, members[i],
+                                                                 members[j]))
     say(f"joint costs: {S * (S - 1) // 2} pairs")
     top = skeleton_tree(cost)
     say(f"topology: root segment {top.root}")
     T = traj.shape[0]
+    # joint centres from the low-passed data too (all frames, untrimmed) when it is noisy
+    fit_data = lowpass(traj, rate_hz) if noisy else traj
     jc = np.full((T, S, 3), np.nan)
     joints: list[JointFit | None] = [None] * S
     for s in range(S):
         p = top.parents[s]
         if p < 0:
             continue
-        f = fit_joint(traj, members[p], members[s])
+        f = fit_joint(fit_data, members[p], members[s])
         joints[s] = f
         jc[:, s] = f.world
     return SkeletonResult(labels=seg.labels, n_segments=S, eigengap_k=seg.eigengap_k,
