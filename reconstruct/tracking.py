@@ -13,7 +13,9 @@ one prediction nearly equally well), no assignment can be trusted. A matched pai
 (track r with a velocity, point c) is ambiguous when another live track's prediction is within
 ``ambiguity_margin_m`` of being as close to c, or another point is within that margin of
 being as close to r's prediction. Every track involved ends there and the points start new
-tracks: the trajectories are broken rather than swapped.
+tracks: the trajectories are broken rather than swapped. Likewise when a track vanishes
+within ``merge_radius_m`` of another track's new point (the two markers' blobs merged, so
+that point may be either marker), both tracks end.
 Conventions: docs/conventions.md [arrays] ((T, M, 3), NaN gaps), [units], [time].
 """
 from __future__ import annotations
@@ -48,6 +50,8 @@ class TrackingConfig:
         min_length: tracks with fewer samples are dropped (1 keeps every track).
         ambiguity_margin_m: a competing track or point closer than the assigned distance plus
             this margin makes the assignment ambiguous: the tracks end (None: off).
+        merge_radius_m: a track that vanishes within this distance of another track's new
+            point ends, and so does the other (the two markers' blobs have merged; None: off).
     """
 
     model: str = "velocity"
@@ -58,6 +62,7 @@ class TrackingConfig:
     max_gap_frames: int = 5
     min_length: int = 1
     ambiguity_margin_m: float | None = 0.004
+    merge_radius_m: float | None = 0.025
 
     def __post_init__(self):
         if self.model not in _MODELS:
@@ -69,9 +74,37 @@ class TrackingConfig:
             raise ValueError(f"max_gap_frames={self.max_gap_frames}, expected >= 0")
         if self.min_length < 1:
             raise ValueError(f"min_length={self.min_length}, expected >= 1")
+        if self.merge_radius_m is not None and not self.merge_radius_m > 0:
+            raise ValueError(f"merge_radius_m={self.merge_radius_m}, expected > 0 or None")
         if self.ambiguity_margin_m is not None and not self.ambiguity_margin_m >= 0:
             raise ValueError(f"ambiguity_margin_m={self.ambiguity_margin_m}, expected >= 0 "
                              "or None")
+
+
+def _drop_merged(pred, pts, res_px, missed, r, c, radius, jump=0.0015, resid_px=0.3):
+    """A track seen last frame that finds no point now, next to another track's new point
+    (closer than ``radius``), has likely merged into it (one blob, one point for two
+    markers): that point's identity is unknown, so both tracks end.
+    Returns (r, c) kept and the tracks to end."""
+    vanish = np.ones(len(pred), bool)
+    vanish[r] = False
+    vanish &= missed == 0
+    if not vanish.any():
+        return r, c, np.zeros(0, np.int64)
+    v = np.flatnonzero(vanish)
+    d = np.linalg.norm(pred[v][:, None, :] - pts[c][None, :, :], axis=2)   # (V, K)
+    hit = d < radius
+    if not hit.any():
+        return r, c, np.zeros(0, np.int64)
+    # the other track is affected only if its point shows the merge: off its prediction or
+    # with a large ray error (a blob shared with the vanished marker)
+    shows = (np.linalg.norm(pts[c] - pred[r], axis=1) > jump) | (res_px[c] > resid_px)
+    hit &= shows[None, :]
+    if not hit.any():
+        return r, c, np.zeros(0, np.int64)
+    gone = hit.any(axis=0)
+    ended = np.concatenate([v[hit.any(axis=1)], r[gone]])
+    return r[~gone], c[~gone], ended
 
 
 def _drop_ambiguous(cost, r, c, margin, established):
@@ -129,6 +162,7 @@ def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
         cl = by_frame.get(f0 + t)
         pts = cl.points if cl is not None else np.zeros((0, 3))
         res = cl.residual_mm if cl is not None else np.zeros(0)
+        res_px = cl.residual_px if cl is not None else np.zeros(0)
         k = (missed + 1).astype(np.float64)
         pred = last.copy()
         hv = n_consec >= 2
@@ -153,6 +187,10 @@ def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
             if cfg.ambiguity_margin_m is not None and r.size:
                 r, c, ended = _drop_ambiguous(cost, r, c, cfg.ambiguity_margin_m, hv)
                 missed[ended] = cfg.max_gap_frames + 1      # ends below
+            if cfg.merge_radius_m is not None and r.size:
+                r, c, ended = _drop_merged(pred, pts, res_px, missed, r, c,
+                                             cfg.merge_radius_m)
+                missed[ended] = cfg.max_gap_frames + 1
             newp = pts[c]
             consec = missed[r] == 0
             kr = (missed[r] + 1).astype(np.float64)

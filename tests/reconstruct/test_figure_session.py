@@ -64,8 +64,9 @@ def test_no_identity_swaps_and_breaks_mostly_at_occlusions(session):
     assert st["breaks_at_occlusion"] / st["breaks"] >= MIN_BREAKS_AT_OCCLUSION, st
 
 
-@pytest.mark.xfail(strict=True, reason="a few breaks happen where a marker passes within "
-                   "~15-28 mm of another (tracks end as ambiguous) or after a biased sample")
+@pytest.mark.xfail(strict=True, reason="some breaks happen where a marker passes within "
+                   "~15-28 mm of another (tracks end as ambiguous or merged) or after a "
+                   "sample biased by a merged blob")
 def test_breaks_only_at_true_occlusions(session):
     _, _, obs, _, traj = session
     st = score_identity(traj, obs)

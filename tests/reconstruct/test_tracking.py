@@ -154,3 +154,54 @@ def test_stage_records_check_shapes():
     pc = PointCloud(frame=0, points=pts, residual_px=[0.0], residual_mm=[0.0],
                     cameras=[[True, True]], obs=[[0, 1]])
     assert pts.flags.writeable and not pc.points.flags.writeable
+
+
+def _merge_scene():
+    """A moves along x at 0.3 m/s past B (still, 12 mm to the side): from frame 40 to 49
+    their blobs are one point (A's larger blob pulls it to A + (B - A) / 4); then A moves on
+    and B stays."""
+    t = np.arange(100) / RATE_HZ
+    A = np.stack([-0.1 + 0.3 * t, 0 * t, 1.0 + 0 * t], 1)
+    B = np.tile([A[45, 0], 0.012, 1.0], (100, 1))
+    P = np.stack([A, B], axis=1)
+    present = np.ones((100, 2), bool)
+    P[40:50, 0] = A[40:50] + (B[40:50] - A[40:50]) / 4   # the merged point stands for A
+    present[40:50, 1] = False
+    return P, present
+
+
+def test_merged_markers_end_both_tracks():
+    P, present = _merge_scene()
+    clouds, truth = _clouds(P, present, 7, noise=0.0001)
+    traj = track(clouds, TrackingConfig(max_gap_frames=MAX_GAP))
+    own = _owner(traj, clouds, truth)
+    # no trajectory holds samples from before the merge and after it
+    for m in range(traj.n_markers):
+        fr = np.flatnonzero(own[:, m] >= 0)
+        assert not (fr.min() < 40 and fr.max() >= 40), (m, fr.min(), fr.max())
+    # without the rule the tracker carries A's identity into the merged point
+    off = track(clouds, TrackingConfig(max_gap_frames=MAX_GAP, merge_radius_m=None))
+    own_off = _owner(off, clouds, truth)
+    assert any(np.flatnonzero(own_off[:, m] >= 0).min() < 40 <= np.flatnonzero(
+        own_off[:, m] >= 0).max() for m in range(off.n_markers))
+
+
+def test_ambiguous_assignment_ends_tracks():
+    """Two markers 10 mm apart, moving together, jump within one frame to points equally far
+    from both predictions (no prediction explains it): both tracks end rather than guess."""
+    t = np.arange(60) / RATE_HZ
+    A = np.stack([0.5 * t, 0 * t, 1.0 + 0 * t], 1)
+    P = np.stack([A, A + [0.0, 0.010, 0.0]], axis=1)
+    P[30:, 0] += [0.0, 0.005, 0.004]          # both now 6.4 mm from either prediction
+    P[30:, 1] += [0.0, -0.005, -0.004]
+    clouds, truth = _clouds(P, np.ones((60, 2), bool), 8, noise=0.0)
+    traj = track(clouds, TrackingConfig(max_gap_frames=MAX_GAP))
+    own = _owner(traj, clouds, truth)
+    assert traj.n_markers == 4
+    for m in range(traj.n_markers):
+        fr = np.flatnonzero(own[:, m] >= 0)
+        assert fr.max() < 30 or fr.min() >= 30
+    with pytest.raises(ValueError, match="merge_radius_m"):
+        TrackingConfig(merge_radius_m=0.0)
+    with pytest.raises(ValueError, match="ambiguity_margin_m"):
+        TrackingConfig(ambiguity_margin_m=-1.0)
