@@ -141,7 +141,11 @@ class V4L2Camera:
                               int(settings.height or cur.height),
                               (settings.pixel_format or cur.pixel_format).value)
             if settings.rate_hz:
-                lp.set_fps(self._fd, self._bt, settings.rate_hz)
+                try:
+                    lp.set_fps(self._fd, self._bt, settings.rate_hz)
+                except OSError as e:  # no S_PARM (externally triggered sensors): read back
+                    if e.errno in _GONE:
+                        raise
             if settings.exposure_us is not None:
                 self._set_exposure(settings.exposure_us)
             if settings.gain is not None:
@@ -264,7 +268,14 @@ class V4L2Camera:
         lp = self._lp
         try:
             f = lp.get_raw_format(self._fd, self._bt)
-            fps = lp.get_fps(self._fd, self._bt)
+            try:
+                fps = lp.get_fps(self._fd, self._bt)
+            except ZeroDivisionError:   # driver reports a 0/0 frame interval
+                fps = None
+            except OSError as e:        # driver without G_PARM: rate unknown
+                if e.errno in _GONE:
+                    raise
+                fps = None
             _, v = self._try_get((self._cid.EXPOSURE_ABSOLUTE,))
             exposure_us = None if v is None else float(v) * 100.0
             if exposure_us is None and self.exposure_us_per_unit is not None:

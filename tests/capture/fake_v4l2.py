@@ -24,7 +24,7 @@ def fourcc(s):
 class FakeKernel:
     raw = raw
 
-    def __init__(self, *, controls=None, timestamp_flags=0x2000 | 0x10000):
+    def __init__(self, *, controls=None, timestamp_flags=0x2000 | 0x10000, has_parm=True):
         self.rfd, self.wfd = os.pipe()
         os.set_blocking(self.rfd, False)
         self.size = (640, 480)
@@ -40,6 +40,7 @@ class FakeKernel:
         self.seq = 0
         self.gone = False
         self.set_calls = []
+        self.has_parm = has_parm        # False: the driver has no G_PARM/S_PARM ioctls
 
     def opener(self, path, flags):
         if self.gone:
@@ -70,10 +71,14 @@ class FakeKernel:
 
     def set_fps(self, fd, bt, fps):
         self._check(fd)
+        if not self.has_parm:
+            raise OSError(errno.ENOTTY, "Inappropriate ioctl for device")
         self.fps = fractions.Fraction(min(SUPPORTED_FPS, key=lambda f: abs(f - fps)))
 
     def get_fps(self, fd, bt):
         self._check(fd)
+        if not self.has_parm:
+            raise OSError(errno.ENOTTY, "Inappropriate ioctl for device")
         return self.fps
 
     def get_control(self, fd, cid):

@@ -38,6 +38,18 @@ def test_configure_reads_back_what_the_driver_applied():
     cam.close()
 
 
+def test_driver_without_frame_rate_ioctls_reports_rate_unknown():
+    k = FakeKernel(has_parm=False)
+    cam = _camera(k)
+    got = cam.configure(CameraSettings(width=320, height=240, pixel_format=PixelFormat.Y16,
+                                       rate_hz=120, gain=5))
+    assert got.rate_hz is None                       # not silently echoed as 120
+    assert (got.width, got.pixel_format, got.gain) == (320, PixelFormat.Y16, 5.0)
+    k.gone = True
+    with pytest.raises(CameraDisconnected):          # a vanished device still raises
+        cam.configure(CameraSettings(rate_hz=60))
+
+
 def test_exposure_without_absolute_control_needs_units():
     k = FakeKernel(controls={FakeKernel.raw.ControlID.EXPOSURE: 10,
                              FakeKernel.raw.ControlID.GAIN: 0})
