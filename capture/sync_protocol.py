@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 __all__ = [
     "MsgType", "NakCode", "Message", "crc16_ccitt_false", "cobs_encode", "cobs_decode",
-    "encode_message", "decode_frame", "FrameSplitter", "DecodeError", "PROTOCOL_VERSION",
+    "encode_message", "decode_frame", "checked_body", "FrameSplitter", "DecodeError", "PROTOCOL_VERSION",
     "MAX_FRAME_LEN",
 ]
 
@@ -148,14 +148,21 @@ def encode_message(msg: Message) -> bytes:
     return cobs_encode(body) + b"\x00"
 
 
-def decode_frame(frame: bytes) -> Message:
-    """Decode the bytes between two delimiters; raises ``DecodeError``."""
+def checked_body(frame: bytes) -> bytes:
+    """``type || body`` of a frame that passes COBS and CRC (type and length unchecked);
+    raises ``DecodeError``. The box uses it to NAK well-formed frames it cannot parse."""
     raw = cobs_decode(frame)
     if len(raw) < 3:
         raise DecodeError(f"frame of {len(raw)} bytes is too short")
     body, crc = raw[:-2], struct.unpack("<H", raw[-2:])[0]
     if crc16_ccitt_false(body) != crc:
         raise DecodeError("CRC mismatch")
+    return body
+
+
+def decode_frame(frame: bytes) -> Message:
+    """Decode the bytes between two delimiters; raises ``DecodeError``."""
+    body = checked_body(frame)
     try:
         t = MsgType(body[0])
     except ValueError:

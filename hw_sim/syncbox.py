@@ -25,7 +25,8 @@ from typing import Callable
 import numpy as np
 
 from capture.sync_protocol import (PROTOCOL_VERSION, DecodeError, FrameSplitter, Message,
-                                   MsgType, NakCode, decode_frame, encode_message)
+                                   MsgType, NakCode, checked_body, decode_frame,
+                                   encode_message)
 
 __all__ = ["SimSyncBox", "TriggerEvent"]
 
@@ -204,7 +205,8 @@ class SimSyncBox:
         try:
             msg = decode_frame(frame)
         except DecodeError:
-            return  # spec: bad frames are dropped silently
+            self._nak_malformed(frame)
+            return
         t, seq = msg.type, msg.fields.get("seq", 0)
         self.commands.append(t)
 
@@ -243,6 +245,8 @@ class SimSyncBox:
                 nak(NakCode.NOT_CONFIGURED)
             elif self._running:
                 nak(NakCode.BUSY)
+            elif self._width_us + self._delay_us >= 1e9 / self._rate_mhz:
+                nak(NakCode.OUT_OF_RANGE)  # strobe set for a slower rate does not fit
             else:
                 self._period_ticks = self.tick_hz * 1000.0 / self._rate_mhz
                 self._t0_ticks = self.device_ticks(jitter=False) + int(0.002 * self.tick_hz)
@@ -254,6 +258,21 @@ class SimSyncBox:
             ack()
         else:
             nak(NakCode.UNKNOWN_TYPE)
+
+    def _nak_malformed(self, frame: bytes) -> None:
+        """Spec 2: a frame with a good CRC but an unknown type or a wrong body length is
+        answered with NAK (seq from bytes 1..2 when present); other bad frames are dropped."""
+        try:
+            body = checked_body(frame)
+        except DecodeError:
+            return
+        seq = int.from_bytes(body[1:3], "little") if len(body) >= 3 else 0
+        try:
+            MsgType(body[0])
+            code = NakCode.BAD_LENGTH
+        except ValueError:
+            code = NakCode.UNKNOWN_TYPE
+        self._queue_reply(Message.make(MsgType.NAK, seq=seq, cmd=body[0], code=int(code)))
 
     def _emit_pulse(self, index: int, ticks: int) -> None:
         host = float(self.true_host_ns(ticks))

@@ -1,11 +1,19 @@
 """Wire format of docs/sync-protocol.md: CRC, COBS, messages, frame splitting."""
+import re
+import struct
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
 from capture.sync_protocol import (DecodeError, FrameSplitter, Message, MsgType,
-                                   cobs_decode, cobs_encode, crc16_ccitt_false,
+                                   checked_body, cobs_decode, cobs_encode, crc16_ccitt_false,
                                    decode_frame, encode_message)
+
+DOC = Path(__file__).resolve().parents[2] / "docs" / "sync-protocol.md"
+_ROW = re.compile(r"^\| `(?P<msg>[A-Z_]+(?: [^`]*)?)` \| `(?P<pre>[0-9A-F ]+)` \| "
+                  r"`(?P<wire>[0-9A-F ]+)` \|$")
 
 
 def test_crc_check_value():
@@ -19,6 +27,31 @@ def test_cobs_spec_example():
 def test_doc_example_bytes():
     wire = encode_message(Message.make(MsgType.TIME_QUERY, seq=7))
     assert wire == bytes.fromhex("03 06 07 03 AB E7 00")
+
+
+def _doc_rows():
+    rows = [m.groupdict() for m in map(_ROW.match, DOC.read_text().splitlines()) if m]
+    return rows
+
+
+def test_doc_has_a_vector_for_every_message_type():
+    names = {r["msg"].split()[0] for r in _doc_rows()}
+    assert names == {t.name for t in MsgType}
+
+
+@pytest.mark.parametrize("row", _doc_rows(), ids=lambda r: r["msg"].split()[0])
+def test_every_doc_vector_matches_the_encoder(row):
+    name, *fields = re.findall(r'[A-Z_]+|\w+=(?:"[^"]*"|\d+)', row["msg"])
+    kw = {k: v for k, v in (f.split("=", 1) for f in fields)}
+    text = kw.pop("name", '""').strip('"')
+    msg = Message.make(MsgType[name], name=text, **{k: int(v) for k, v in kw.items()})
+    wire = encode_message(msg)
+    assert wire == bytes.fromhex(row["wire"])
+    pre = bytes.fromhex(row["pre"])
+    assert checked_body(wire[:-1]) == pre[:-2]
+    assert struct.unpack("<H", pre[-2:])[0] == crc16_ccitt_false(pre[:-2])
+    back = decode_frame(wire[:-1])
+    assert back.fields == msg.fields and back.name == text
 
 
 @given(st.binary(max_size=700))

@@ -1,11 +1,12 @@
 """Host sync box driver against the simulated box, through the real pty device path."""
+import struct
 import time
 
 import numpy as np
 import pytest
 
 from capture.errors import SyncBoxDisconnected, SyncBoxNak, SyncBoxTimeout, SyncProtocolError
-from capture.sync_protocol import NakCode
+from capture.sync_protocol import MsgType, NakCode
 from capture.syncbox import SyncBox, SyncConfig
 from hw_sim.syncbox import SimSyncBox
 
@@ -68,6 +69,54 @@ def test_naks_are_raised_with_code(sim):
         with pytest.raises(SyncBoxNak) as e:
             box.configure(SyncConfig(rate_hz=60))
         assert e.value.code == NakCode.BUSY
+
+
+def _raw_frame(body: bytes) -> bytes:
+    from capture.sync_protocol import cobs_encode, crc16_ccitt_false
+    return cobs_encode(body + struct.pack("<H", crc16_ccitt_false(body))) + b"\x00"
+
+
+def _raw_replies(port, wire, n, timeout_s=1.0):
+    """Write raw bytes to the box's device path, return the next ``n`` non-PULSE replies."""
+    import serial
+    from capture.sync_protocol import FrameSplitter, decode_frame
+    out, sp = [], FrameSplitter()
+    with serial.Serial(port, 115200, timeout=0.05) as ser:
+        ser.write(b"\x00" + wire)
+        t_end = time.monotonic() + timeout_s
+        while len(out) < n and time.monotonic() < t_end:
+            for fr in sp.feed(ser.read(256)):
+                m = decode_frame(fr)
+                if m.type not in (MsgType.PULSE, MsgType.BOOT):
+                    out.append(m)
+    return out
+
+
+def test_box_naks_well_formed_frames_it_cannot_parse(sim):
+    """Spec 2: good CRC + unknown type -> NAK UNKNOWN_TYPE; known command with a wrong body
+    length -> NAK BAD_LENGTH; bad CRC -> silence. Raw bytes through the pty."""
+    wire = (_raw_frame(bytes([0x7F, 0x09, 0x00]))                        # unknown type
+            + _raw_frame(bytes([0x02, 0x0A, 0x00, 0x01]))                # SET_RATE, short
+            + _raw_frame(bytes([0x06, 0x0B, 0x00]))[:-3] + b"\x55\x00"   # bad CRC
+            + _raw_frame(bytes([0x06, 0x0C, 0x00])))                     # TIME_QUERY seq 12
+    got = sorted(_raw_replies(sim.port, wire, 3), key=lambda m: m.seq)  # latencies vary
+    assert [(m.type, m.seq) for m in got] == [(MsgType.NAK, 9), (MsgType.NAK, 10),
+                                              (MsgType.TIME_REPLY, 12)]
+    assert (got[0].cmd, got[0].code) == (0x7F, NakCode.UNKNOWN_TYPE)
+    assert (got[1].cmd, got[1].code) == (0x02, NakCode.BAD_LENGTH)
+
+
+def test_start_refuses_a_strobe_that_does_not_fit_the_period(sim):
+    with SyncBox(sim.port) as box:
+        box.configure(SyncConfig(rate_hz=10, strobe_width_us=60_000))
+        # a faster rate alone is accepted (rate and strobe may be set in either order) ...
+        box._request(MsgType.SET_RATE, rate_mhz=100_000)
+        with pytest.raises(SyncBoxNak) as e:                 # ... but START checks the fit
+            box.start()
+        assert e.value.code == NakCode.OUT_OF_RANGE and not sim.running
+        box.configure(SyncConfig(rate_hz=100, strobe_width_us=500))
+        box.start()
+        assert sim.running
 
 
 def test_survives_garbage_and_partial_frames(sim):
