@@ -48,7 +48,9 @@ def record_live(cameras: Sequence[Camera], sync: SyncBox | None, out, *, duratio
                              on_status=on_status)
     try:
         stats = session.run(duration_s)
-    finally:
-        rec.finish()  # always leaves a readable folder; errors re-raised below
-    rec.close()
+    except BaseException as e:
+        rec.finish(session_error=f"{type(e).__name__}: {e}")  # a readable, closed folder
+        raise
+    rec.finish()
+    rec.close()  # raises a recorder error (disk full) the session did not see
     return LiveResult(session=stats, recording=rec.stats(), folder=Path(out))

@@ -268,13 +268,15 @@ class Recorder:
         calibration: path of the calibration file this recording belongs to (or None).
         codec: ``CODEC_AUTO`` (default), ``CODEC_SPARSE``, ``CODEC_ZLIB_RLE`` or ``CODEC_RAW``.
         queue_frames: per-camera queue; a full queue blocks the producer (back-pressure).
+            Default: half a second of frames (2..32), so a crash loses at most that much
+            of what is queued.
         fsync_interval_s: at most this much is lost on power failure.
         file_factory: ``path -> binary file`` (tests inject a disk that fills up).
     """
 
     def __init__(self, folder, cameras: Sequence[RecordedCamera], *, rate_hz: float,
                  sync_config: dict | None = None, calibration: str | None = None,
-                 codec: int = CODEC_AUTO, queue_frames: int = 32,
+                 codec: int = CODEC_AUTO, queue_frames: int | None = None,
                  fsync_interval_s: float = 0.5, file_factory: Callable | None = None,
                  extra: dict | None = None):
         self.folder = Path(folder)
@@ -303,6 +305,10 @@ class Recorder:
             "detections": None, "error": None, **(extra or {}),
         }
         self._write_metadata()
+        if queue_frames is None:
+            queue_frames = int(min(32, max(2, round(0.5 * self.rate_hz))))
+        if queue_frames < 1:
+            raise ValueError(f"queue_frames={queue_frames}, expected >= 1")
         factory = file_factory or (lambda p: open(p, "xb"))
         # each writer may use its share of the CPUs (with margin) for compression
         budget = 0.7 * (os.cpu_count() or 1) / (self.rate_hz * len(self.cameras))
@@ -372,8 +378,12 @@ class Recorder:
                 "compression_ratio": raw / out if out else float("nan"),
                 "queued": sum(w.q.qsize() for w in self._writers)}
 
-    def finish(self) -> None:
-        """Close (flush, fsync, finalise metadata) without raising; see ``error``."""
+    def finish(self, session_error: str | None = None) -> None:
+        """Close (flush, fsync, finalise metadata) without raising; see ``error``.
+        ``session_error`` (why the session ended early, e.g. the sync box vanished) is
+        stored in the metadata."""
+        if session_error is not None and not self._closed:
+            self._meta["session_error"] = str(session_error)
         self._shutdown()
 
     def _shutdown(self):

@@ -240,8 +240,15 @@ class CaptureSession:
         """Start, run for ``duration_s`` (or until a fatal fault), stop; returns stats."""
         self.start()
         t_end = time.monotonic() + duration_s
-        while time.monotonic() < t_end and not self._stop.is_set():
-            time.sleep(0.01)
+        try:
+            while time.monotonic() < t_end and not self._stop.is_set():
+                time.sleep(0.01)
+        except KeyboardInterrupt:    # Ctrl-C: stop the devices and threads, then re-raise
+            try:
+                self.stop()
+            except CaptureError:
+                pass
+            raise
         return self.stop()
 
     def __enter__(self):
@@ -330,7 +337,10 @@ class CaptureSession:
                     time.sleep(0.002)
         except CaptureError as e:
             self._fail(e)
-            self._emit_ready(flush=True)
+            try:
+                self._emit_ready(flush=True)   # hand over what was matched before the fault
+            except CaptureError:
+                pass                           # the consumer itself failed (e.g. disk full)
         finally:
             if self.on_frame_set is None:
                 try:

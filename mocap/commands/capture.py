@@ -75,6 +75,9 @@ def run(args) -> int:
         sys.stderr.write(f"\nmocap capture: {type(e).__name__}: {e}\n"
                          f"(recording in {args.out} closed; frames before the fault are kept)\n")
         return 1
+    except KeyboardInterrupt:
+        sys.stderr.write(f"\nmocap capture: interrupted (recording in {args.out} closed)\n")
+        return 130
     finally:
         for c in cameras:
             try:

@@ -1,14 +1,26 @@
-"""``mocap capture --sim`` end to end, and record_live with a camera lost mid-session."""
+"""``mocap capture`` end to end (simulated rig, the real-device form, kill -9), and
+record_live with faults."""
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from capture.errors import SyncProtocolError
 from capture.live import record_live
-from capture.replay import load_metadata, read_recording, recording_frames
+from capture.replay import FrameFileReader, load_metadata, read_recording, recording_frames
 from capture.syncbox import SyncBox, SyncConfig
-from hw_sim.sim_camera import sim_rig
+from hw_sim.sim_camera import SimCamera, ring_of_cameras, sim_rig
+from hw_sim.syncbox import SimSyncBox
 from mocap.cli import main
 
 MIN_SETS_FRACTION = 0.7
+CRASH_LOSS_S = 1.0          # kill -9 may lose at most the last second
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_capture_sim_cli_records_a_readable_folder(tmp_path, capsys):
@@ -65,3 +77,113 @@ def test_capture_cli_real_form_reports_a_missing_device(tmp_path, capsys):
     assert rc == 1
     err = capsys.readouterr().err
     assert "CameraDisconnected" in err and "video99" in err
+
+
+def test_capture_cli_real_device_form(tmp_path, capsys, monkeypatch):
+    """``--camera /dev/videoN ... --sync PORT``: the sync box is opened by its device path
+    (a simulated box's pty); the camera opener is the only thing replaced (no V4L2 here)."""
+    sim = SimSyncBox(rng=3)
+    models = ring_of_cameras(2, size=(96, 64))
+    opened = {}
+
+    def open_camera(path, backend):
+        assert backend == "v4l2"
+        cam = SimCamera(models[len(opened)], sync=sim, rng=len(opened))
+        cam.device = path
+        opened[path] = cam
+        return cam
+
+    monkeypatch.setattr("mocap.commands.capture._open_camera", open_camera)
+    out = tmp_path / "real"
+    try:
+        rc = main(["capture", "--camera", "/dev/video4", "--camera", "/dev/video2",
+                   "--sync", sim.port, "--rate", "50", "--exposure-us", "800",
+                   "--duration", "0.8", "--out", str(out)])
+        assert sim.rate_hz == 50.0 and not sim.running       # configured, then stopped
+    finally:
+        sim.close()
+    assert rc == 0, capsys.readouterr().err
+    meta = load_metadata(out)
+    assert meta.complete and meta.devices == ("/dev/video4", "/dev/video2")
+    assert meta.sync["port"] == sim.port and meta.sync["rate_hz"] == 50
+    assert meta.settings[0].exposure_us == 800.0 and meta.calibration is None
+    sets = list(read_recording(out))
+    assert len(sets) >= MIN_SETS_FRACTION * 50 * 0.8
+    for fs in sets:                                # each frame from its own pulse
+        for cam, f in zip(opened.values(), fs.frames):
+            if f is not None:
+                assert cam.truth[f.sequence][0] == fs.pulse_index
+
+
+def test_record_live_closes_the_recording_when_the_box_sends_garbage(tmp_path):
+    sim, cams, _ = sim_rig(2, size=(96, 64), rng=5)
+    box = SyncBox(sim.port, garbage_timeout_s=0.3)
+    box.configure(SyncConfig(rate_hz=100))
+    stop = False
+
+    def spew():
+        while not stop:
+            sim.inject_garbage(200, with_zeros=False)
+            time.sleep(0.005)
+
+    import threading
+    t = threading.Timer(0.4, spew)
+    t.start()
+    try:
+        with pytest.raises(SyncProtocolError, match="no valid frame"):
+            record_live(cams, box, tmp_path / "rec", duration_s=5.0)
+    finally:
+        stop = True
+        t.cancel()
+        t.join()
+        for c in cams:
+            c.close()
+        box.close()
+        sim.close()
+    meta = load_metadata(tmp_path / "rec")
+    assert meta.complete                                  # closed cleanly, not torn
+    assert "SyncProtocolError" in meta.raw["session_error"] and sim.port in \
+        meta.raw["session_error"]
+    sets = list(read_recording(tmp_path / "rec"))
+    assert len(sets) == meta.raw["frame_sets"] >= 20      # ~0.4 s at 100 Hz before the fault
+
+
+def test_kill_minus_9_of_mocap_capture_keeps_all_but_the_last_second(tmp_path):
+    """The real command in a subprocess, killed with SIGKILL mid-recording: the folder reads
+    back, and the last recorded exposure is within a second of the kill (same monotonic
+    clock in both processes)."""
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "mocap", "capture", "--sim", "--cameras",
+                             "2", "--size", "96", "64", "--rate", "50", "--duration", "120",
+                             "--out", str(out)], cwd=REPO, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 60
+        first = out / "cam01.frames"
+        while not (first.exists() and first.stat().st_size > 50_000):
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "recording never started"
+            time.sleep(0.05)
+        time.sleep(1.5)
+        t_kill = time.monotonic_ns()
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+    assert proc.returncode == -signal.SIGKILL
+    meta = load_metadata(out)
+    assert not meta.complete                               # it never got to close
+    last = []
+    for f, cid in zip(meta.files, meta.camera_ids):
+        r = FrameFileReader(out / f, cid)
+        recs = list(r)                                     # every record passes its CRC
+        assert len(recs) > 50
+        assert [x.frame.sequence for x in recs] == sorted(x.frame.sequence for x in recs)
+        last.append(recs[-1].frame.timestamp_ns)
+    lost_s = (t_kill - min(last)) * 1e-9
+    assert 0 <= lost_s <= CRASH_LOSS_S, lost_s
+    rows = list(recording_frames(out))
+    assert [fi for fi, _ in rows] == sorted(fi for fi, _ in rows)
