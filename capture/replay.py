@@ -9,6 +9,7 @@ Format: capture/recording.py. Conventions: docs/conventions.md [camera-order], [
 """
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import json
 import os
@@ -30,7 +31,8 @@ from .session import FrameSet
 
 __all__ = ["RecordingMetadata", "RecordedFrame", "FrameFileReader", "is_recording",
            "load_metadata",
-           "recording_frames", "read_recording", "read_recording_detections", "ReplayCamera"]
+           "recording_frames", "read_recording", "read_recording_detections", "ReplayCamera",
+           "ReplayClock", "replay_cameras"]
 
 _SOURCES = list(TimestampSource)
 
@@ -190,14 +192,57 @@ def read_recording_detections(path) -> Detections2D | None:
                                rate_hz=meta.rate_hz)
 
 
+class ReplayClock:
+    """Shared time origin of the cameras of one replay: recorded time ``rec_t0_ns`` is
+    played at the host time of the first ``start()`` of any of them."""
+
+    def __init__(self, rec_t0_ns: int):
+        self.rec_t0_ns = int(rec_t0_ns)
+        self.wall_t0_ns: int | None = None
+
+    def start(self) -> None:
+        if self.wall_t0_ns is None:
+            self.wall_t0_ns = time.monotonic_ns()
+
+    def wall_of(self, rec_ns: int) -> int:
+        return rec_ns - self.rec_t0_ns + self.wall_t0_ns
+
+
+def replay_cameras(path, *, realtime: bool = True) -> list["ReplayCamera"]:
+    """All cameras of a recording, in rig order, on one ``ReplayClock``: with
+    ``realtime`` they deliver frames at their recorded pace with timestamps moved to the
+    host clock of now, so a ``CaptureSession`` (no sync box, ``rate_hz`` of the
+    recording) re-forms the frame sets as it would live. (Offline, ``read_recording``
+    gives the recorded sets directly.)"""
+    meta = load_metadata(path)
+    firsts = []
+    for f, cid in zip(meta.files, meta.camera_ids):
+        rf = next(iter(FrameFileReader(meta.path / f, cid)), None)
+        if rf is not None:
+            firsts.append(rf.frame.timestamp_ns)
+    if not firsts:
+        raise RecordingError(str(meta.path), "recording holds no frames")
+    clock = ReplayClock(min(firsts))
+    return [ReplayCamera(path, i, realtime=realtime, clock=clock, rebase_time=realtime)
+            for i in range(len(meta.camera_ids))]
+
+
 class ReplayCamera:
     """A recorded camera played back through the ``Camera`` protocol.
 
-    ``realtime=True`` paces frames by their recorded timestamps; otherwise as fast as read.
-    At the end of the recording ``read`` raises ``CameraDisconnected`` (the stream ended).
+    ``realtime=True`` paces frames by their recorded timestamps (relative to ``clock``,
+    shared by the cameras of one replay; by default this camera's first frame);
+    otherwise as fast as read. ``rebase_time`` moves the timestamps to the host clock of
+    the replay (needs ``realtime``), as a live camera would stamp them. At the end of the
+    recording ``read`` raises ``CameraDisconnected`` (the stream ended).
     """
 
-    def __init__(self, path, camera: str | int, *, realtime: bool = False):
+    def __init__(self, path, camera: str | int, *, realtime: bool = False,
+                 clock: ReplayClock | None = None, rebase_time: bool = False):
+        if rebase_time and not realtime:
+            raise ValueError("rebase_time=True needs realtime=True")
+        self._clock = clock
+        self.rebase_time = rebase_time
         self.meta = load_metadata(path)
         idx = camera if isinstance(camera, int) else self.meta.camera_ids.index(camera)
         self._idx = idx
@@ -207,7 +252,6 @@ class ReplayCamera:
         self.realtime = realtime
         self._rfd, self._wfd = os.pipe()
         os.write(self._wfd, b"\x01")  # readable while frames remain
-        self._t0_wall = self._t0_rec = None
         self._next: RecordedFrame | None = None
         self._done = False
 
@@ -222,6 +266,8 @@ class ReplayCamera:
     def start(self) -> None:
         if self._it is None:
             self._it = iter(self._reader)
+        if self.realtime and self._clock is not None:
+            self._clock.start()
 
     def stop(self) -> None:
         pass
@@ -243,15 +289,19 @@ class ReplayCamera:
             raise CameraDisconnected(f"replay:{self.camera_id}", "end of recording")
         if self.realtime:
             now = time.monotonic_ns()
-            if self._t0_wall is None:
-                self._t0_wall, self._t0_rec = now, rf.frame.timestamp_ns
-            wait = ((rf.frame.timestamp_ns - self._t0_rec) - (now - self._t0_wall)) * 1e-9
+            if self._clock is None:
+                self._clock = ReplayClock(rf.frame.timestamp_ns)
+                self._clock.start()
+            wait = (self._clock.wall_of(rf.frame.timestamp_ns) - now) * 1e-9
             if wait > timeout:
                 time.sleep(max(0.0, timeout))
                 self._next = rf  # not due yet: keep it for the next call
                 return None
             if wait > 0:
                 time.sleep(wait)
+            if self.rebase_time:
+                return dataclasses.replace(
+                    rf.frame, timestamp_ns=self._clock.wall_of(rf.frame.timestamp_ns))
         return rf.frame
 
     def fileno(self) -> int:

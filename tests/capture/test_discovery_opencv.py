@@ -122,9 +122,12 @@ def test_opencv_fallback_reads_back_and_marks_dequeue_time():
     assert got.rate_hz == 30.0                 # the refused set() is visible in read-back
     assert got.exposure_us == 2000.0 and got.gain == 4.0
     assert got.pixel_format == PixelFormat.GREY
+    assert cam.read(0.05) is None                  # not started: bounded, nothing
     cam.start()
     before = time.monotonic_ns()
-    f = cam.read(1.0)
+    import select
+    assert select.select([cam.fileno()], [], [], 1.0)[0]   # pollable handle
+    f = cam.read(0)
     assert f is not None and f.image.shape == (480, 640)
     assert f.timestamp_source == TimestampSource.HOST_DEQUEUE
     assert abs(f.timestamp_ns - before) < 200e6

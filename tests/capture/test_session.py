@@ -48,7 +48,11 @@ def test_frame_sets_match_pulses(rig):
     assert [s.index for s in sets] == list(range(len(sets)))
     assert np.all(np.diff([s.host_ns for s in sets]) > 0)
     for i, c in enumerate(st.cameras):
-        assert c.unmatched == 0 and c.connected and c.latency_ms > 0
+        assert c.unmatched == 0 and c.connected
+        # exposure -> frame set: at least the camera's readout latency, under one wait
+        assert cams[i].latency_ns / 1e6 <= c.latency_ms < 1e3 * (3 / RATE_HZ + 0.1)
+        assert MIN_SETS_FRACTION * RATE_HZ <= c.fps <= 1.1 * RATE_HZ
+        assert c.frames == sum(fs.frames[i] is not None for fs in sets) + c.late
         # the statistics agree with the sets (drops/late only when the host is starved)
         assert c.missing == sum(fs.frames[i] is None for fs in sets)
         assert c.missing <= c.drops + c.late + cams[i].frames_dropped
@@ -189,6 +193,23 @@ def test_free_running_cameras_without_sync_box():
     for j in range(2):
         seqs = [fs.frames[j].sequence for fs in sets if fs.frames[j] is not None]
         assert np.all(np.diff(seqs) > 0)
+
+
+def test_camera_read_is_bounded_and_fileno_pollable():
+    import select
+    cam = SimCamera(ring_of_cameras(1, size=(64, 48))[0], rate_hz=50.0, rng=0)
+    t0 = time.monotonic()
+    assert cam.read(0.2) is None                      # not started: nothing, after 0.2 s
+    assert 0.15 <= time.monotonic() - t0 < 0.2 + 0.3
+    assert not select.select([cam.fileno()], [], [], 0)[0]
+    cam.start()
+    r, _, _ = select.select([cam.fileno()], [], [], 1.0)
+    assert r and cam.read(0) is not None              # readable means a frame is waiting
+    cam.disappear()
+    with pytest.raises(Exception, match="disappeared"):
+        for _ in range(10):
+            cam.read(0.05)
+    cam.close()
 
 
 def test_bad_arguments():
