@@ -18,7 +18,9 @@ bytes cut into 64-byte blocks, a bitmap (``np.packbits``) of the non-zero blocks
 blocks deflated as in codec 1 (payload ``u32 block, u32 n_blocks, u32 n_nonzero, bitmap,
 deflate``). ``CODEC_AUTO`` picks 2 for mostly-black frames, else 1, and writes 0 while the
 compression cost exceeds the writer's share of the CPUs at the recording rate, or while its
-queue is more than half full: a slow CPU or disk costs compression ratio before frames. Records are
+queue is more than half full -- unless compressing at least halves the bytes and saves more
+write time (measured write + fsync time per byte) than it costs, i.e. the disk is the
+bottleneck: a slow CPU costs compression ratio before frames. Records are
 written by one thread per camera and flushed to the kernel after each record (so ``kill -9``
 loses only frames still queued), and fsynced every ``fsync_interval_s`` (power loss loses
 at most that). A reader stops at the first incomplete or corrupt record at the tail.
@@ -155,6 +157,10 @@ class _Writer:
         self.codec = codec
         self.budget_s = budget_s      # CPU time per frame this writer may spend compressing
         self._cost_s = 0.0            # running mean compression time per frame
+        self._frac = 1.0              # running mean compressed / raw size
+        self._w_write = 0.0           # running mean write wall time per byte (s)
+        self._w_sync = 0.0            # running mean fsync wall time per byte written (s)
+        self._sync_bytes = 0
         self._n_since_probe = 0
         self._probe_every = self._PROBE_MIN
         self.fsync_interval_s = fsync_interval_s
@@ -171,14 +177,22 @@ class _Writer:
         self.thread = threading.Thread(target=self._loop, daemon=True, name=f"rec {path.name}")
         self.thread.start()
 
-    def _choose_codec(self) -> int:
-        """AUTO: compress while it fits the CPU budget and the queue keeps up, else raw
-        (lossless either way), re-probing the compression cost every 32..1024 frames."""
+    def _compression_pays(self, nbytes: int) -> bool:
+        """Compressing at least halves the bytes and saves more write time (the disk is the
+        bottleneck) than it costs (wall-clock write times are noisy on a loaded host, so
+        a marginal saving does not count)."""
+        saved_s = nbytes * (1.0 - self._frac) * (self._w_write + self._w_sync)
+        return self._frac < 0.5 and 0 < self._cost_s < saved_s
+
+    def _choose_codec(self, nbytes: int = 0) -> int:
+        """AUTO: compress while it fits the CPU budget and the queue keeps up, or while it
+        saves more write time than it costs; else raw (lossless either way), re-probing
+        the compression cost every 32..1024 frames."""
         if self.codec != CODEC_AUTO:
             return self.codec
         behind = self.q.qsize() > self.q.maxsize // 2
         over = self._cost_s > self.budget_s
-        if behind or over:
+        if (behind or over) and not self._compression_pays(nbytes):
             self._n_since_probe += 1
             if self._n_since_probe < self._probe_every or behind:
                 return CODEC_RAW
@@ -189,9 +203,14 @@ class _Writer:
         return CODEC_AUTO
 
     def _sync(self):
+        t0 = time.monotonic()
         self.f.flush()
         os.fsync(self.f.fileno())
         self._last_sync = time.monotonic()
+        if self._sync_bytes:   # fsync time is part of the cost of each byte written
+            w = (self._last_sync - t0) / self._sync_bytes
+            self._w_sync = 0.5 * self._w_sync + 0.5 * w
+            self._sync_bytes = 0
 
     def _loop(self):
         try:
@@ -205,16 +224,23 @@ class _Writer:
                     return
                 if item:
                     frame, kw = item
-                    codec = self._choose_codec()
+                    codec = self._choose_codec(frame.image.nbytes)
                     t0 = time.thread_time()
                     parts = encode_record_parts(frame, codec=codec, **kw)
+                    n = sum(len(p) for p in parts)
                     if codec != CODEC_RAW:
                         dt = time.thread_time() - t0
-                        self._cost_s = dt if self._cost_s == 0 else 0.8 * self._cost_s + 0.2 * dt
+                        frac = min(1.0, n / frame.image.nbytes)
+                        first = self._cost_s == 0
+                        self._cost_s = dt if first else 0.8 * self._cost_s + 0.2 * dt
+                        self._frac = frac if first else 0.8 * self._frac + 0.2 * frac
+                    tw = time.monotonic()
                     for p in parts:
                         self.f.write(p)
                     self.f.flush()   # in the kernel: survives kill -9
-                    n = sum(len(p) for p in parts)
+                    w = (time.monotonic() - tw) / n
+                    self._w_write = 0.8 * self._w_write + 0.2 * w
+                    self._sync_bytes += n
                     self.good_end += n
                     self.n_records += 1
                     self.bytes_raw += frame.image.nbytes

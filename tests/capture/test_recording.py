@@ -406,3 +406,35 @@ def test_auto_codec_stores_raw_when_compression_exceeds_the_cpu_budget(tmp_path)
         back = [imgs_[0] for _, imgs_ in recording_frames(tmp_path / f"r{rate:g}")]
         assert all(np.array_equal(a, b) for a, b in zip(back, imgs)) and len(back) == 40
     assert ratios[10.0] > 2.0 and ratios[1e7] < 1.1
+
+
+class _SlowDisk:
+    """A file whose writes take ``s_per_byte`` of wall time (a disk that cannot keep up)."""
+
+    def __init__(self, path, s_per_byte):
+        self.f = open(path, "xb")
+        self.s_per_byte = s_per_byte
+
+    def write(self, b):
+        time.sleep(len(b) * self.s_per_byte)
+        return self.f.write(b)
+
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+
+
+def test_auto_codec_keeps_compressing_when_the_disk_is_the_bottleneck(tmp_path):
+    """Over the CPU budget (1e7 Hz) but on a disk slower than the compressor: compressing
+    saves more time than it costs, so AUTO keeps compressing (cf. the test above)."""
+    rng = np.random.default_rng(6)
+    imgs = [_sparse_image(rng, 128, 160, np.uint8, 0.02) for _ in range(40)]
+    with Recorder(tmp_path / "slow", _cams(1), rate_hz=1e7, queue_frames=100,
+                  file_factory=lambda p: _SlowDisk(p, 2e-7)) as rec:   # 20 kB raw: 4 ms
+        for i, img in enumerate(imgs):
+            rec.write_frame(0, Frame(image=img, camera_id="c0", sequence=i, timestamp_ns=i,
+                                     exposure_us=1.0, gain=0.0,
+                                     timestamp_source=TimestampSource.HOST_DEQUEUE),
+                            frame_index=i)
+    assert rec.stats()["compression_ratio"] > 2.0
+    back = [im[0] for _, im in recording_frames(tmp_path / "slow")]
+    assert len(back) == 40 and all(np.array_equal(a, b) for a, b in zip(back, imgs))
