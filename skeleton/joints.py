@@ -7,6 +7,12 @@ frame (Kabsch per frame), stay at constant distances from the joint centre. An a
 distance residuals ``|x_tm - c| - r_m`` with their analytic Jacobian (the variance-of-
 distance cost). A hinge (rank-2 system, singular-value ratio below ``HINGE_RATIO``) has no
 unique centre: it is placed on the axis at the foot of the child markers' centroid.
+Residuals are weighted by their propagated noise (see ``fit_joint``), which makes
+``JointFit.cost_m`` a layout-independent estimate of the marker noise for a true joint.
+Two 2-marker segments have no frame: a per-frame centre at constant distances from all
+four markers (the thesis' world-frame cost, ``_world_lm``: Levenberg-Marquardt with the
+per-frame 3x3 blocks eliminated, batched), started in closed form (``_four_marker_init``).
+``joint_cost`` is the topology cost of a candidate pair.
 Conventions: docs/conventions.md [arrays], [errors].
 """
 from __future__ import annotations
@@ -162,13 +168,20 @@ def _fit_world(traj: np.ndarray, idx: np.ndarray) -> JointFit:
     sub = np.linspace(0, full.size - 1, min(full.size, COST_FRAMES)).astype(int)
     cs, r, _ = _world_solve(X[sub], idx.size // 2)
     c = np.stack([np.interp(np.arange(full.size), sub, cs[:, k]) for k in range(3)], 1)
+    def frame_ssr(c):
+        return ((np.linalg.norm(X - c[:, None], axis=2) - r) ** 2).sum(1)
+
+    ssr_f = frame_ssr(c)
     for _ in range(FRAME_ITERS):   # every frame's centre at the fitted distances r (Gauss-Newton)
         D = X - c[:, None]
         d = np.maximum(np.linalg.norm(D, axis=2), 1e-12)
         u = D / d[..., None]
         e = d - r
-        A = np.swapaxes(u, 1, 2) @ u + 1e-12 * np.eye(3)
-        c = c + np.linalg.solve(A, (np.swapaxes(u, 1, 2) @ e[..., None]))[..., 0]
+        A = np.swapaxes(u, 1, 2) @ u + 1e-9 * np.eye(3)
+        c2 = c + np.linalg.solve(A, (np.swapaxes(u, 1, 2) @ e[..., None]))[..., 0]
+        s2 = frame_ssr(c2)
+        better = s2 < ssr_f                     # a step that does not help is not taken
+        c[better], ssr_f[better] = c2[better], s2[better]
     res = float(np.sqrt(np.mean((np.linalg.norm(X - c[:, None], axis=2) - r) ** 2)))
     world = np.full((T, 3), np.nan)
     world[full] = c
@@ -186,6 +199,7 @@ SCREEN_ITERS = 40
 REFINE_STARTS = 2
 LINE_STARTS = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5)   # starts along each 2-marker line (marker 0 -> marker 1)
 WORLD_ITERS = 200
+MAX_JOINT_MARKER_M = 1.0   # a joint farther than this from a marker of its segments: rejected
 LM_RTOL = 1e-7           # stop: relative decrease of the sum of squares
 LM_ATOL_M = 1e-10        # stop: rms residual
 
@@ -311,6 +325,12 @@ def _four_marker_init(X: np.ndarray, extra_starts=()) -> np.ndarray | None:
     return np.einsum("fij,fj->fi", Mi, y - k)
 
 
+def _plausible(r: np.ndarray) -> np.ndarray:
+    """(B, N) marker-joint distances -> (B,) whether a fit is a joint, not a far-away point
+    (noisy 2+2 data also fits a point metres away at nearly constant distances)."""
+    return (r > 0).all(1) & (r < MAX_JOINT_MARKER_M).all(1)
+
+
 def _world_solve(X: np.ndarray, na: int, multistart: bool = True):
     """World-frame joint fit for two 2-marker segments, X (F, 4, 3) with the first ``na`` = 2
     markers on one segment: (c (F, 3), r (4,), ssr). ``multistart=False``: only the closed-
@@ -319,8 +339,10 @@ def _world_solve(X: np.ndarray, na: int, multistart: bool = True):
     if not multistart:
         lin = _four_marker_init(X)
         if lin is not None:
-            return _world_lm(X, lin, np.linalg.norm(X - lin[:, None], axis=2).mean(0),
-                             WORLD_ITERS)
+            c, r, ssr = _world_lm(X, lin, np.linalg.norm(X - lin[:, None], axis=2).mean(0),
+                                  WORLD_ITERS)
+            if _plausible(r[None])[0]:
+                return c, r, ssr
     # two 2-marker segments: the world-frame cost is very non-convex (local minima 10-20 cm
     # from the joint), so start along both marker lines, extended past the markers where
     # joints sit; screen the starts on a few frames, refine the best on all.
@@ -346,20 +368,26 @@ def _world_solve(X: np.ndarray, na: int, multistart: bool = True):
         rads.insert(0, np.linalg.norm(X - lin[:, None], axis=2).mean(0))
     cb, rb, sb = _world_lm(np.broadcast_to(X, (len(cands),) + X.shape), np.array(cands),
                            np.array(rads), WORLD_ITERS)
-    o = int(np.argmin(sb))
+    o = int(np.argmin(np.where(_plausible(rb), sb, np.inf + sb)))
     return cb[o], rb[o], float(sb[o])
 
 
 def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True) -> float:
-    """Topology cost of a candidate joint between two segments: the thesis' variance-of-
-    distance cost in world coordinates (one centre per frame at constant distances from
-    every marker of both segments), minimised, and normalised by its degrees of freedom:
-    ``sqrt(SSR / (F N - 3 F - N))``. For a true joint it estimates the marker noise level
-    whatever the marker layout (no lever-arm amplification as in a one-segment-frame fit,
-    and the per-frame centres of 2+2-marker pairs cannot absorb it); a false pair adds its
-    misfit. Initialised by the closed-form sphere fit (>= 3 markers on one side) and from
-    the closest cross-segment marker pairs; the lowest minimum is kept. m; inf if unfit.
-    ``multistart=False`` (2+2 markers only): the closed-form start alone, an upper bound."""
+    """Topology cost of a candidate joint between two segments, normalised so that a true
+    joint scores the marker noise sd (m) whatever the marker layout; a false pair adds its
+    misfit. inf if the pair cannot be fitted.
+
+    - One segment with >= 3 markers: the sphere fit of ``fit_joint`` in that segment's frame
+      (both ways, averaged, when both have >= 3), residuals weighted by their propagated
+      noise (the reference pose's rotation noise grows with the lever arm), over the
+      degrees of freedom (``JointFit.cost_m``). An unweighted residual made pairs whose
+      reference markers are close together look bad, and false pairs win.
+    - Two 2-marker segments: the thesis' world-frame cost (one centre per frame at constant
+      distances from all 4 markers), ``sqrt(SSR / (F N - 3 F - N))``, started from the
+      closed form of ``_four_marker_init``; ``multistart`` adds starts along both marker
+      lines (screened on a few frames), for data where the closed form is too noisy.
+
+    ``COST_FRAMES`` frames are used, evenly spaced over those seeing both segments."""
     traj = np.asarray(traj, np.float64)
     a, b = np.asarray(markers_a, int), np.asarray(markers_b, int)
     idx = np.concatenate([a, b])

@@ -2,8 +2,9 @@
 
 ``solve_skeleton(trajectories (T, M, 3), rate_hz, n_segments=None, rng=None, progress=None)
 -> SkeletonResult``. Stages: ``skeleton.segments`` (spectral clustering of distance
-variance), ``skeleton.joints`` (joint fit of every segment pair; its residual is the edge
-cost), ``skeleton.topology`` (MST, root = tree centre), then a refined joint fit per edge.
+variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every segment pair
+(noise-normalised joint-fit residual; on 6 Hz low-passed data when the data is noisy),
+``skeleton.topology`` (MST, root = tree centre), then a refined joint fit per tree edge.
 Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations

@@ -86,3 +86,20 @@ def test_kabsch_proper_rotation():
     back = np.einsum("tij,tnj->tni", Re, src) + te[:, None]
     assert np.abs(back - P).max() < 1e-9
     assert np.allclose(np.linalg.det(Re), 1.0)
+
+
+@pytest.mark.parametrize("noise_m", [0.0, NOISE_M])
+def test_automatic_segment_count_on_two_to_four_marker_figures(noise_m):
+    """Spectral clustering (local scale k=2, 3 mm floor) finds K and the segments exactly,
+    two-marker segments included (k=3 merged them with a neighbour: 22/50 at 1 mm noise)."""
+    from skeleton.segments import segment_markers
+
+    for k in range(10):
+        g = np.random.default_rng(1000 + k)
+        fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
+        mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+        tr = mo.markers + np.random.default_rng(k).normal(0, noise_m, mo.markers.shape)
+        seg = segment_markers(tr, None, rng=0)
+        assert seg.n_segments == fig.n_segments
+        for s in range(fig.n_segments):
+            assert len(set(seg.labels[fig.marker_segment == s].tolist())) == 1
