@@ -102,6 +102,7 @@ class _Cam:
         self.error: str | None = None
         self.frames = self.drops = self.late = self.unmatched = self.missing = 0
         self.last_seq: int | None = None
+        self.last_t = float("-inf")   # frame time of the latest frame placed in a set
         self.arrivals: deque[int] = deque(maxlen=512)
         self.latency: deque[float] = deque(maxlen=256)
         self.offset_ns = offset_ns
@@ -186,6 +187,7 @@ class CaptureSession:
         self._virtual_t0: float | None = None
         self._matcher: threading.Thread | None = None
         self.error: CaptureError | None = None
+        self._draining = False
         self._lock = threading.Lock()
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -203,8 +205,10 @@ class CaptureSession:
         self._matcher.start()
 
     def stop(self) -> SessionStats:
-        """Stop the pulses, let frames in flight complete their sets (up to the current
-        wait), then stop everything; re-raises a fatal sync fault."""
+        """Stop the pulses, let frames in flight complete their sets, then stop everything;
+        re-raises a fatal sync fault. While draining, a set waits (up to ``max_wait_cap_s``)
+        until each live camera has either delivered its frame or a later one (then it
+        dropped it): an overloaded host does not lose the frames of the last pulses."""
         if not self._stop.is_set():
             if self.sync is not None:
                 try:
@@ -217,7 +221,11 @@ class CaptureSession:
                         c.cam.stop()
                     except CaptureError:
                         pass
-            deadline = time.monotonic_ns() + self._current_wait_ns() + 20e6
+            # with a box, cameras still deliver the frames of the last pulses: drain them;
+            # free-running cameras were stopped above: only what is queued remains
+            self._draining = self.sync is not None
+            deadline = time.monotonic_ns() + 20e6 + (
+                self.max_wait_cap_ns if self._draining else self._current_wait_ns())
             while (time.monotonic_ns() < deadline and not self._stop.is_set()
                    and (self._order or any(c.held or not c.q.empty() for c in self._cams))):
                 time.sleep(0.005)
@@ -434,6 +442,7 @@ class CaptureSession:
             c.unmatched += 1  # a second frame for the same pulse
             return True
         slot.frames[i] = f
+        c.last_t = max(c.last_t, t)
         return True
 
     def _nearest(self, t: float) -> _Slot | None:
@@ -464,10 +473,14 @@ class CaptureSession:
     def _emit_ready(self, flush: bool = False) -> None:
         now = time.monotonic_ns()
         live = [j for j, c in enumerate(self._cams) if c.connected]
-        wait = self._current_wait_ns()
+        draining = self._draining
+        wait = self.max_wait_cap_ns if draining else self._current_wait_ns()
+        half = self.period_ns / 2
         while self._order:
             s = self._slots[self._order[0]]
-            complete = all(s.frames[j] is not None for j in live)
+            complete = all(s.frames[j] is not None
+                           or (draining and self._cams[j].last_t > s.host_ns + half)
+                           for j in live)
             if not (complete or flush or now - s.host_ns > wait):
                 break
             self._order.pop(0)

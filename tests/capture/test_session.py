@@ -134,6 +134,27 @@ def test_adaptive_wait_keeps_frames_of_a_slow_host(rig):
     assert st.complete_sets >= MIN_SETS_FRACTION * RATE_HZ * DURATION_S - 2 * bound
 
 
+def test_stop_drains_the_frames_of_the_last_pulses(rig):
+    """A camera that turns slow just before stop (a host overloaded at the end): its frames
+    of the last pulses come 300 ms late, beyond the normal wait; stopping waits for them
+    (up to max_wait_cap_s) instead of closing the last sets without them."""
+    sim, box, cams = rig
+    sets = []
+    session = CaptureSession(cams, box, on_frame_set=sets.append, adaptive_wait=False)
+    session.start()
+    time.sleep(0.5)
+    cams[0].late_ms, cams[0].late_probability = 300.0, 1.0
+    time.sleep(0.02)                       # a couple of pulses with the slow camera
+    t0 = time.monotonic()
+    st = session.stop()
+    assert time.monotonic() - t0 < 0.3 + 0.02 + 1.0          # far below the 2 s cap
+    assert cams[0].frames_delayed >= 1
+    _check_matching(sets, cams)
+    tail = [fs for fs in sets if fs.frames[1] is not None][-3:]
+    assert all(fs.complete for fs in tail), [fs.frames[0] is None for fs in tail]
+    assert st.cameras[0].late == 0 and st.cameras[0].missing == 0
+
+
 def test_back_pressure_from_a_slow_consumer_shows_as_drops(rig):
     sim, box, cams = rig
 
