@@ -18,9 +18,10 @@ bytes cut into 64-byte blocks, a bitmap (``np.packbits``) of the non-zero blocks
 blocks deflated as in codec 1 (payload ``u32 block, u32 n_blocks, u32 n_nonzero, bitmap,
 deflate``). ``CODEC_AUTO`` picks 2 for mostly-black frames, else 1, and writes 0 while the
 compression cost exceeds the writer's share of the CPUs at the recording rate, or while its
-queue is more than half full -- unless compressing at least halves the bytes and saves more
-write time (measured write + fsync time per byte) than it costs, i.e. the disk is the
-bottleneck: a slow CPU costs compression ratio before frames. Records are
+queue is more than half full -- unless, with a full queue, compressing fits the CPU budget,
+at least halves the bytes and saves more write time (measured write + fsync time per byte)
+than it costs, i.e. the disk is the bottleneck: a slow CPU costs compression ratio before
+frames, a slow disk keeps the compression. Records are
 written by one thread per camera and flushed to the kernel after each record (so ``kill -9``
 loses only frames still queued), and fsynced every ``fsync_interval_s`` (power loss loses
 at most that). A reader stops at the first incomplete or corrupt record at the tail.
@@ -178,11 +179,12 @@ class _Writer:
         self.thread.start()
 
     def _compression_pays(self, nbytes: int) -> bool:
-        """Compressing at least halves the bytes and saves more write time (the disk is the
-        bottleneck) than it costs (wall-clock write times are noisy on a loaded host, so
-        a marginal saving does not count)."""
+        """The writer is behind because of the disk, not the CPU: compressing fits the CPU
+        budget, at least halves the bytes and saves more write time than it costs
+        (wall-clock write times are noisy on a loaded host: a marginal saving does not
+        count)."""
         saved_s = nbytes * (1.0 - self._frac) * (self._w_write + self._w_sync)
-        return self._frac < 0.5 and 0 < self._cost_s < saved_s
+        return self._frac < 0.5 and 0 < self._cost_s <= min(self.budget_s, saved_s)
 
     def _choose_codec(self, nbytes: int = 0) -> int:
         """AUTO: compress while it fits the CPU budget and the queue keeps up, or while it
@@ -190,6 +192,8 @@ class _Writer:
         the compression cost every 32..1024 frames."""
         if self.codec != CODEC_AUTO:
             return self.codec
+        if self._cost_s == 0:
+            return CODEC_AUTO   # the first frame measures what compression costs
         behind = self.q.qsize() > self.q.maxsize // 2
         over = self._cost_s > self.budget_s
         if (behind or over) and not self._compression_pays(nbytes):
