@@ -11,6 +11,11 @@ Two image kinds: 'noisy' (sensor read noise on the dark background, worst case f
 lossless codec) and 'clean' (black level clamped to 0, typical IR mocap frames).
 
     .venv/bin/python benchmarks/bench_recording.py [--duration 4] [--cameras 8] [--dir /tmp]
+
+``--kill-trials N`` also runs ``mocap capture --sim`` (4 cameras 320x256 at 100 Hz) N times,
+kills it with SIGKILL after 3 s of recording and prints what it lost: kill time minus the
+last recorded exposure of the worst camera (both on the host monotonic clock).
+``--kill-only`` skips the throughput table.
 """
 from __future__ import annotations
 
@@ -121,6 +126,37 @@ def run(writer_factory, frames, rate_hz, duration_s):
     return w, submitted, dropped, t_prod, t_all, cpu
 
 
+def kill_trial(base: Path, k: int) -> tuple[float, int, bool]:
+    """(seconds lost, frames per camera kept, metadata complete) of one killed capture."""
+    import signal
+    import subprocess
+    import sys
+
+    from capture.replay import FrameFileReader, load_metadata
+    out = base / f"killed{k}"
+    repo = Path(__file__).resolve().parents[1]
+    p = subprocess.Popen([sys.executable, "-m", "mocap", "capture", "--sim", "--cameras", "4",
+                          "--size", "320", "256", "--rate", "100", "--duration", "120",
+                          "--seed", str(k), "--out", str(out)], cwd=repo,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        f, t_end = out / "cam03.frames", time.monotonic() + 60
+        while not (f.exists() and f.stat().st_size > 100_000) and time.monotonic() < t_end:
+            time.sleep(0.05)
+        time.sleep(3.0)
+        t_kill = time.monotonic_ns()
+        os.kill(p.pid, signal.SIGKILL)
+    finally:
+        p.wait()
+    meta = load_metadata(out)
+    lasts, n = [], []
+    for fn, cid in zip(meta.files, meta.camera_ids):
+        recs = list(FrameFileReader(out / fn, cid))   # every record passes its CRC
+        lasts.append(recs[-1].frame.timestamp_ns)
+        n.append(len(recs))
+    return (t_kill - min(lasts)) * 1e-9, min(n), meta.complete
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--cameras", type=int, default=8)
@@ -128,37 +164,48 @@ def main():
     ap.add_argument("--duration", type=float, default=4.0)
     ap.add_argument("--size", type=int, nargs=2, default=(1280, 1024))
     ap.add_argument("--dir", default=None)
+    ap.add_argument("--kill-trials", type=int, default=0)
+    ap.add_argument("--kill-only", action="store_true")
     a = ap.parse_args()
     base = Path(tempfile.mkdtemp(prefix="bench_rec_", dir=a.dir))
+    try:
+        if not a.kill_only:
+            throughput(a, base)
+        for k in range(a.kill_trials):
+            lost, n, complete = kill_trial(base, k)
+            print(f"kill -9 of mocap capture --sim (4 x 320x256 at 100 Hz) trial {k}: lost "
+                  f"{lost * 1e3:.0f} ms, kept {n} frames/camera, metadata complete={complete}")
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
+def throughput(a, base):
     print(f"{a.cameras} cameras {a.size[0]}x{a.size[1]} 8-bit at {a.rate:g} Hz for "
           f"{a.duration:g} s, {os.cpu_count()} CPUs, writing to {base}")
     print(f"{'images':<7} {'writer':<14} {'rate kept Hz':>12} {'on disk Hz':>10} "
           f"{'dropped':>8} {'bytes/frame':>12} {'ratio':>6} {'drain s':>8} {'cpu s':>6}")
-    try:
-        for kind in ("clean", "noisy"):
-            frames = make_frames(a.cameras, tuple(a.size), kind)
-            raw_frame = frames[0][0].nbytes
-            results = {}
-            for name in ("recorder", "npy baseline"):
-                folder = base / f"{kind}_{name.split()[0]}"
-                if name == "recorder":
-                    cams = [RecordedCamera(camera_id=f"cam_{c + 1}") for c in range(a.cameras)]
-                    fac = lambda: Recorder(folder, cams, rate_hz=a.rate, codec=CODEC_AUTO)  # noqa: E731
-                else:
-                    fac = lambda: NpyWriter(folder, a.cameras)  # noqa: E731
-                w, sub, drop, t_prod, t_all, cpu = run(fac, frames, a.rate, a.duration)
-                n = sub * a.cameras
-                st = w.stats() if name == "recorder" else w.stats(n, n * raw_frame)
-                kept = sub / a.duration
-                results[name] = kept
-                print(f"{kind:<7} {name:<14} {kept:12.1f} {sub / t_all:10.1f} {drop:8d} "
-                      f"{st['bytes_per_frame']:12.0f} {st['compression_ratio']:6.2f} "
-                      f"{t_all - t_prod:8.2f} {cpu:6.1f}")
-                shutil.rmtree(folder)
-            print(f"{kind:<7} rate kept ratio recorder / npy = "
-                  f"{results['recorder'] / results['npy baseline']:.2f}")
-    finally:
-        shutil.rmtree(base, ignore_errors=True)
+    for kind in ("clean", "noisy"):
+        frames = make_frames(a.cameras, tuple(a.size), kind)
+        raw_frame = frames[0][0].nbytes
+        results = {}
+        for name in ("recorder", "npy baseline"):
+            folder = base / f"{kind}_{name.split()[0]}"
+            if name == "recorder":
+                cams = [RecordedCamera(camera_id=f"cam_{c + 1}") for c in range(a.cameras)]
+                fac = lambda: Recorder(folder, cams, rate_hz=a.rate, codec=CODEC_AUTO)  # noqa: E731
+            else:
+                fac = lambda: NpyWriter(folder, a.cameras)  # noqa: E731
+            w, sub, drop, t_prod, t_all, cpu = run(fac, frames, a.rate, a.duration)
+            n = sub * a.cameras
+            st = w.stats() if name == "recorder" else w.stats(n, n * raw_frame)
+            kept = sub / a.duration
+            results[name] = kept
+            print(f"{kind:<7} {name:<14} {kept:12.1f} {sub / t_all:10.1f} {drop:8d} "
+                  f"{st['bytes_per_frame']:12.0f} {st['compression_ratio']:6.2f} "
+                  f"{t_all - t_prod:8.2f} {cpu:6.1f}")
+            shutil.rmtree(folder)
+        print(f"{kind:<7} rate kept ratio recorder / npy = "
+              f"{results['recorder'] / results['npy baseline']:.2f}")
 
 
 if __name__ == "__main__":
