@@ -198,7 +198,9 @@ SCREEN_FRAMES = 40
 SCREEN_ITERS = 40
 REFINE_STARTS = 2
 LINE_STARTS = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5)   # starts along each 2-marker line (marker 0 -> marker 1)
-WORLD_ITERS = 200
+WORLD_ITERS = 100
+QUICK_ITERS = 30         # the closed-form start alone (noise-free: 1-2 iterations)
+INIT_FRAMES = 60         # frames for the closed-form 2+2 start
 MAX_JOINT_MARKER_M = 1.0   # a joint farther than this from a marker of its segments: rejected
 LM_RTOL = 1e-7           # stop: relative decrease of the sum of squares
 LM_ATOL_M = 1e-10        # stop: rms residual
@@ -271,6 +273,10 @@ def _four_marker_init(X: np.ndarray, extra_starts=()) -> np.ndarray | None:
     y = (X[:, 1:4] ** 2).sum(2) - (m0**2).sum(1)[:, None]
     cond = np.linalg.cond(M)
     ok = cond < 1e3
+    if ok.sum() > INIT_FRAMES:   # the 4 unknowns need few frames: keep an even subset
+        keep = np.flatnonzero(ok)
+        ok = np.zeros_like(ok)
+        ok[keep[np.linspace(0, keep.size - 1, INIT_FRAMES).astype(int)]] = True
     if ok.sum() < 12:
         return None
     Q = np.linalg.inv(M[ok])
@@ -286,15 +292,21 @@ def _four_marker_init(X: np.ndarray, extra_starts=()) -> np.ndarray | None:
     th0 = Vt[:7].T @ ((U[:, :7].T @ b) / sv[:7])
     Nb = Vt[7:].T
 
+    ii, jj = np.array(iu).T
+
     def incons(beta):
         th = th0 + Nb @ beta
-        kk = np.outer(th[:3], th[:3])
-        return np.array([th[4 + n] - kk[i, j] for n, (i, j) in enumerate(iu)])
+        return th[4:] - th[ii] * th[jj]
+
+    def incons_jac(beta):
+        th = th0 + Nb @ beta
+        return Nb[4:] - Nb[ii] * th[jj][:, None] - th[ii][:, None] * Nb[jj]
 
     cons = []
     scale = max(np.abs(th0).max(), 1e-9)
     for g in (0.0, -1.0, 1.0, -10.0, 10.0):
-        sol = least_squares(incons, np.array([g * scale, 0.0, 0.0]), method="lm")
+        sol = least_squares(incons, np.array([g * scale, 0.0, 0.0]), jac=incons_jac,
+                            method="lm")
         th = th0 + Nb @ sol.x
         cons.append((sol.cost, np.concatenate([th[:3], [np.sqrt(max(th[3], 0.0))]])))
     cons.sort(key=lambda z: z[0])
@@ -340,7 +352,7 @@ def _world_solve(X: np.ndarray, na: int, multistart: bool = True):
         lin = _four_marker_init(X)
         if lin is not None:
             c, r, ssr = _world_lm(X, lin, np.linalg.norm(X - lin[:, None], axis=2).mean(0),
-                                  WORLD_ITERS)
+                                  QUICK_ITERS)
             if _plausible(r[None])[0]:
                 return c, r, ssr
     # two 2-marker segments: the world-frame cost is very non-convex (local minima 10-20 cm
