@@ -15,7 +15,9 @@ lossless codec) and 'clean' (black level clamped to 0, typical IR mocap frames).
 ``--kill-trials N`` also runs ``mocap capture --sim`` (4 cameras 320x256 at 100 Hz) N times,
 kills it with SIGKILL after 3 s of recording and prints what it lost: kill time minus the
 last recorded exposure of the worst camera (both on the host monotonic clock).
-``--kill-only`` skips the throughput table.
+``--kill-only`` skips the throughput table. ``--clock-s S`` also measures the sync box
+clock fit for S seconds (simulated box on a pty, 50 ppm fast, through pyserial): pulse host
+times from the fit against the simulator's truth.
 """
 from __future__ import annotations
 
@@ -157,6 +159,36 @@ def kill_trial(base: Path, k: int) -> tuple[float, int, bool]:
     return (t_kill - min(lasts)) * 1e-9, min(n), meta.complete
 
 
+def clock_fit(seconds: float) -> None:
+    from capture.syncbox import SyncBox, SyncConfig
+    from hw_sim.syncbox import SimSyncBox
+
+    sim = SimSyncBox(drift_ppm=50.0, jitter_us=2.0, rng=7)
+    truth = {}
+    sim.add_trigger_listener(lambda e: truth.__setitem__((e.index, e.device_ticks), e.host_ns))
+    try:
+        with SyncBox(sim.port) as box:
+            box.configure(SyncConfig(rate_hz=100))
+            box.start()
+            pulses, t_end = [], time.monotonic() + seconds
+            while time.monotonic() < t_end:
+                p = box.get_pulse(0.05)
+                if p is not None:
+                    pulses.append(p)
+            box.stop()
+            fit = box.clock.fit
+            err = np.array([box.host_time(p) - truth[(p.index, p.device_ticks)]
+                            for p in pulses]) / 1e3
+            true_ppm = (1 / (1 + sim.drift_ppm * 1e-6) - 1) * 1e6
+            print(f"clock fit: {len(pulses)} pulses in {seconds:g} s at 100 Hz; gain-1 "
+                  f"{fit.drift_ppm:.1f} ppm (true {true_ppm:.1f}); pulse time error vs truth "
+                  f"RMS {np.sqrt(np.mean(err ** 2)):.1f} us, max {np.abs(err).max():.1f} us; "
+                  f"bound (largest rtt/2 used) {fit.bound_ns / 1e3:.0f} us; "
+                  f"bad frames {box.stats().bad_frames}")
+    finally:
+        sim.close()
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--cameras", type=int, default=8)
@@ -166,11 +198,14 @@ def main():
     ap.add_argument("--dir", default=None)
     ap.add_argument("--kill-trials", type=int, default=0)
     ap.add_argument("--kill-only", action="store_true")
+    ap.add_argument("--clock-s", type=float, default=0.0)
     a = ap.parse_args()
     base = Path(tempfile.mkdtemp(prefix="bench_rec_", dir=a.dir))
     try:
         if not a.kill_only:
             throughput(a, base)
+        if a.clock_s > 0:
+            clock_fit(a.clock_s)
         for k in range(a.kill_trials):
             lost, n, complete = kill_trial(base, k)
             print(f"kill -9 of mocap capture --sim (4 x 320x256 at 100 Hz) trial {k}: lost "
