@@ -197,7 +197,8 @@ COST_ITERS = 60
 SCREEN_FRAMES = 40
 SCREEN_ITERS = 40
 REFINE_STARTS = 2
-LINE_STARTS = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5)   # starts along each 2-marker line (marker 0 -> marker 1)
+# starts along each 2-marker line, in units of marker 0 -> marker 1
+LINE_STARTS = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5)
 WORLD_ITERS = 100
 QUICK_ITERS = 30         # the closed-form start alone (noise-free: 1-2 iterations)
 INIT_FRAMES = 60         # frames for the closed-form 2+2 start

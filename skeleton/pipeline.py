@@ -57,9 +57,11 @@ def lowpass(traj: np.ndarray, rate_hz: float, cutoff_hz: float = COST_CUTOFF_HZ,
 @dataclass(frozen=True, kw_only=True)
 class SkeletonResult:
     """labels (M,) segment per marker; n_segments; eigengap_k; root; parents (S,);
-    cost (S, S) topology costs m (noise-normalised joint-fit
-    residuals, ``skeleton.joints.joint_cost``, on 6 Hz low-passed data); joints: tuple of JointFit per segment (None for the
-    root: the joint with its parent); joint_centres (T, S, 3) m (the root's: NaN); rate_hz."""
+    cost (S, S) topology costs m (noise-normalised joint-fit residuals,
+    ``skeleton.joints.joint_cost``; on 6 Hz low-passed data when the data is noisy);
+    joints: tuple of JointFit per segment (None for the root: the joint with its parent;
+    fitted on the low-passed data when noisy); joint_centres (T, S, 3) m (the root's: NaN);
+    rate_hz."""
 
     labels: np.ndarray
     n_segments: int

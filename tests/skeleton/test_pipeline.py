@@ -103,3 +103,23 @@ def test_automatic_segment_count_on_two_to_four_marker_figures(noise_m):
         assert seg.n_segments == fig.n_segments
         for s in range(fig.n_segments):
             assert len(set(seg.labels[fig.marker_segment == s].tolist())) == 1
+
+
+def test_lowpass_keeps_slow_motion_and_gaps_and_cuts_noise():
+    from skeleton.pipeline import lowpass
+
+    t = np.arange(1200) / 120.0
+    x = np.stack([np.sin(2 * np.pi * 0.5 * t), np.cos(2 * np.pi * 0.3 * t), t], 1)
+    traj = np.repeat(x[:, None], 2, axis=1)
+    traj[500:520, 1] = np.nan
+    out = lowpass(traj, 120.0)
+    assert np.isnan(out[500:520, 1]).all() and not np.isnan(out[:, 0]).any()
+    inner = slice(60, -60)
+    assert np.abs(out[inner, 0] - traj[inner, 0]).max() < 1e-4     # 0.5 Hz passes
+    noise = np.random.default_rng(0).normal(0, 1e-3, traj.shape)
+    resid = lowpass(traj + noise, 120.0)[inner, 0] - traj[inner, 0]
+    assert resid.std() < 0.5e-3                                      # 6 Hz of 60 Hz
+    trimmed = lowpass(traj, 120.0, trim=True)
+    assert np.isnan(trimmed[:30, 0]).all() and not np.isnan(trimmed[30:-30, 0]).any()
+    with pytest.raises(ValueError):
+        lowpass(traj, 0.0)
