@@ -84,7 +84,7 @@ class Camera(Protocol):
     """A frame source.
 
     ``configure`` returns the settings the device actually applied (read back, never the
-    request echoed). ``read(timeout)`` returns the next ``Frame`` or ``None`` when none
+    request echoed); ``settings`` gives them again later. ``read(timeout)`` returns the next ``Frame`` or ``None`` when none
     arrived within ``timeout`` seconds; it never blocks forever, and raises
     ``CameraDisconnected`` once the device is gone. ``fileno()`` is a handle that becomes
     readable (``select``/``poll``) when a frame is waiting.
@@ -92,6 +92,11 @@ class Camera(Protocol):
 
     @property
     def camera_id(self) -> str: ...
+
+    @property
+    def settings(self) -> CameraSettings:
+        """The settings in effect (as read back from the device), recorded as metadata."""
+        ...
 
     def configure(self, settings: CameraSettings) -> CameraSettings: ...
 

@@ -35,10 +35,10 @@ def record_live(cameras: Sequence[Camera], sync: SyncBox | None, out, *, duratio
     rate = sync.config.rate_hz if sync is not None and sync.config is not None else rate_hz
     recorded = []
     for c in cameras:
-        s = getattr(c, "settings", None)
+        s = c.settings   # applied, as read back ([Camera protocol])
         recorded.append(RecordedCamera(camera_id=c.camera_id,
                                        device=str(getattr(c, "device", getattr(c, "path", ""))),
-                                       settings=None if s is None else s.to_dict()))
+                                       settings=s.to_dict()))
     rec = Recorder(out, recorded, rate_hz=rate,
                    sync_config=None if sync is None or sync.config is None
                    else {**sync.config.to_dict(), "port": sync.port,

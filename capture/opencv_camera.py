@@ -53,6 +53,11 @@ class OpenCVCamera:
     def camera_id(self) -> str:
         return self._id
 
+    @property
+    def settings(self) -> CameraSettings:
+        """Settings in effect, as last read back from the driver."""
+        return self._settings
+
     def configure(self, settings: CameraSettings) -> CameraSettings:
         c = self._cap
         if settings.pixel_format is not None:

@@ -259,9 +259,14 @@ class ReplayCamera:
     def camera_id(self) -> str:
         return self.meta.camera_ids[self._idx]
 
+    @property
+    def settings(self) -> CameraSettings:
+        """The settings recorded for this camera."""
+        return self.meta.settings[self._idx] or CameraSettings()
+
     def configure(self, settings: CameraSettings) -> CameraSettings:
         """Recorded settings are fixed; returns them whatever was asked."""
-        return self.meta.settings[self._idx] or CameraSettings()
+        return self.settings
 
     def start(self) -> None:
         if self._it is None:

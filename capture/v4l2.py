@@ -130,6 +130,11 @@ class V4L2Camera:
     def camera_id(self) -> str:
         return self._id
 
+    @property
+    def settings(self) -> CameraSettings:
+        """Settings in effect, as last read back from the driver."""
+        return self._settings
+
     def configure(self, settings: CameraSettings) -> CameraSettings:
         if self._streaming:
             raise CameraError(self.path, "configure while streaming; stop() first")

@@ -121,7 +121,7 @@ def test_opencv_fallback_reads_back_and_marks_dequeue_time():
                                        pixel_format=PixelFormat.GREY))
     assert got.rate_hz == 30.0                 # the refused set() is visible in read-back
     assert got.exposure_us == 2000.0 and got.gain == 4.0
-    assert got.pixel_format == PixelFormat.GREY
+    assert got.pixel_format == PixelFormat.GREY and cam.settings == got
     assert cam.read(0.05) is None                  # not started: bounded, nothing
     cam.start()
     before = time.monotonic_ns()

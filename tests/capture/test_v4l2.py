@@ -35,6 +35,7 @@ def test_configure_reads_back_what_the_driver_applied():
     assert got.exposure_us == 2000.0               # 100 us units
     assert got.gain == 63.0                        # clamped by the driver, read back
     assert (k.raw.ControlID.EXPOSURE_AUTO, 1) in k.set_calls   # manual exposure first
+    assert cam.settings == got                     # what the recording metadata stores
     cam.close()
 
 
