@@ -17,6 +17,12 @@ Per frame:
 5. **Ghost removal.** A point supported by two cameras only is dropped when its rays meet at
    less than ``min_angle_deg``, when one of its blobs lies within ``gate_px`` of the projection
    of a better (>= 3-camera) point (the blob is explained already), or outside ``bounds``.
+6. **Merged blobs** (when blob areas are given). Two markers close in an image make one
+   blob, whose centroid lies between them and biases any point using it. A blob's size
+   ``sqrt(area) * depth / f`` estimates the marker diameter (up to a constant); a blob larger
+   than ``merged_size_ratio`` times the frame's median is taken as merged. Its ray is removed
+   and the point re-triangulated from the others; a point left with fewer than
+   ``min_cameras`` unmerged rays is dropped (the marker has no blob of its own there).
 
 Conventions: docs/conventions.md [pixels], [frames], [arrays]. Works for any C >= 2.
 """
@@ -47,15 +53,18 @@ class CorrespondenceConfig:
         min_angle_deg: smallest ray angle of a 2-camera point.
         bounds: None or ((xmin, ymin, zmin), (xmax, ymax, zmax)) m; points outside are dropped.
         rounds: matching rounds (later rounds use the blobs left over).
+        merged_size_ratio: blob-size ratio above which a blob counts as merged (step 6;
+            None: off). Two equal discs merged have sqrt(2) = 1.41.
     """
 
     gate_px: float = 1.5
     max_error_px: float = 1.5
-    bad_ray_px: float = 1.5
+    bad_ray_px: float = 0.75
     min_cameras: int = 2
     min_angle_deg: float = 5.0
     bounds: tuple | None = None
     rounds: int = 2
+    merged_size_ratio: float | None = 1.25
 
     def __post_init__(self):
         for name in ("gate_px", "max_error_px", "bad_ray_px"):
@@ -65,6 +74,9 @@ class CorrespondenceConfig:
             raise ValueError(f"min_cameras={self.min_cameras}, expected >= 2")
         if self.rounds < 1:
             raise ValueError(f"rounds={self.rounds}, expected >= 1")
+        if self.merged_size_ratio is not None and not self.merged_size_ratio > 1:
+            raise ValueError(f"merged_size_ratio={self.merged_size_ratio}, expected > 1 "
+                             "or None")
         if self.bounds is not None:
             b = np.asarray(self.bounds, dtype=np.float64)
             if b.shape != (2, 3) or np.any(b[0] >= b[1]):
@@ -273,7 +285,7 @@ def _gather(blobs, cams, idx):
 
 
 def match_frame(blobs_norm, epi: EpipolarGeometry, cfg: CorrespondenceConfig | None = None,
-                frame: int = 0) -> PointCloud:
+                frame: int = 0, areas=None) -> PointCloud:
     """Reconstruct the markers of one frame from per-camera undistorted blobs.
 
     Args:
@@ -282,6 +294,7 @@ def match_frame(blobs_norm, epi: EpipolarGeometry, cfg: CorrespondenceConfig | N
         epi: :func:`epipolar_geometry` of the rig.
         cfg: parameters.
         frame: frame index stored in the cloud.
+        areas: None or C arrays ``(N_c,)`` of blob areas in px (enables step 6).
     Returns:
         a :class:`PointCloud`; ``obs`` indexes ``blobs_norm[c]``.
     """
@@ -313,8 +326,56 @@ def match_frame(blobs_norm, epi: EpipolarGeometry, cfg: CorrespondenceConfig | N
     obs = np.array([a[3] for a in acc])
     cams = obs >= 0
     keep = _not_ghost(X, cams, obs, blobs, geo, cfg)
+    if areas is not None and cfg.merged_size_ratio is not None:
+        X, rp, rm, obs, keep = _drop_merged_rays(X, rp, rm, obs, keep, blobs, areas, geo, cfg)
+        cams = obs >= 0
     return PointCloud(frame=frame, points=X[keep], residual_px=rp[keep], residual_mm=rm[keep],
                       cameras=cams[keep], obs=obs[keep])
+
+
+def _drop_merged_rays(X, rp, rm, obs, keep, blobs, areas, geo: RigArrays,
+                      cfg: CorrespondenceConfig):
+    """Step 6: remove rays of merged blobs; re-triangulate or drop the points they touch."""
+    if len(areas) != len(blobs):
+        raise ValueError(f"{len(areas)} area arrays for {len(blobs)} cameras")
+    cams = obs >= 0
+    k_idx, c_idx = np.nonzero(cams & keep[:, None])
+    if k_idx.size < 5:
+        return X, rp, rm, obs, keep
+    z = np.einsum("ki,ki->k", geo.R[c_idx, 2], X[k_idx]) + geo.t[c_idx, 2]
+    lens = np.array([len(x) for x in areas])
+    offs = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    a = np.concatenate([np.asarray(x, np.float64).reshape(-1) for x in areas])[
+        offs[c_idx] + obs[k_idx, c_idx]]
+    size = np.sqrt(a) * z / geo.f[c_idx]
+    ok = np.isfinite(size) & (size > 0)
+    if ok.sum() < 5:
+        return X, rp, rm, obs, keep
+    merged = ok & (size > cfg.merged_size_ratio * np.median(size[ok]))
+    if not merged.any():
+        return X, rp, rm, obs, keep
+    X, rp, rm, obs, keep = X.copy(), rp.copy(), rm.copy(), obs.copy(), keep.copy()
+    C = geo.n_cameras
+    ks = np.unique(k_idx[merged])
+    o = obs[ks].copy()
+    o[np.searchsorted(ks, k_idx[merged]), c_idx[merged]] = -1
+    enough = (o >= 0).sum(axis=1) >= cfg.min_cameras
+    keep[ks[~enough]] = False
+    ks, o = ks[enough], o[enough]
+    if not ks.size:
+        return X, rp, rm, obs, keep
+    xy = np.full((C, ks.size, 2), np.nan)
+    for c in range(C):
+        m = o[:, c] >= 0
+        xy[c, m] = blobs[c][o[m, c]]
+    r = triangulate_normalized(xy, geo, bad_ray_px=cfg.bad_ray_px)
+    worst = np.nanmax(np.where(r.used, r.ray_error_px, 0.0), axis=1)
+    good = r.ok & (r.used.sum(axis=1) >= cfg.min_cameras) & (worst <= cfg.max_error_px)
+    keep[ks[~good]] = False
+    g = ks[good]
+    X[g], rp[g], rm[g] = r.points[good], r.residual_px[good], r.residual_mm[good]
+    obs[g] = np.where(r.used[good], o[good], -1)
+    return X, rp, rm, obs, keep
 
 
 def _not_ghost(X, cams, obs, blobs, geo: RigArrays, cfg: CorrespondenceConfig):

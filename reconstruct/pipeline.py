@@ -64,13 +64,14 @@ class ReconstructionConfig:
 
 
 def _match_chunk(epi: EpipolarGeometry, cfg: CorrespondenceConfig, frames, bounds, cams,
-                 norm, n_cameras) -> list[PointCloud]:
+                 norm, n_cameras, area=None) -> list[PointCloud]:
     out = []
     for f, (a, b) in zip(frames, bounds):
         c = cams[a:b]
         xy = norm[a:b]
         blobs = [xy[c == k] for k in range(n_cameras)]
-        out.append(match_frame(blobs, epi, cfg, frame=int(f)))
+        areas = None if area is None else [area[a:b][c == k] for k in range(n_cameras)]
+        out.append(match_frame(blobs, epi, cfg, frame=int(f), areas=areas))
     return out
 
 
@@ -104,6 +105,7 @@ def reconstruct_clouds(detections: Detections2D, rig: Rig,
         if m.any():
             norm[m] = rig[c].pixel_to_normalized(detections.xy[m])
     epi = epipolar_geometry(rig_arrays(rig))
+    area = detections.area_px   # blob areas (merged-blob test of the correspondence), or None
     if len(detections) == 0:
         return MarkerCloudSequence(clouds=(), rate_hz=detections.rate_hz)
     sl = detections.frame_slices()
@@ -117,7 +119,8 @@ def reconstruct_clouds(detections: Detections2D, rig: Rig,
 
     def args(s):
         a, b = bounds[s][0, 0], bounds[s][-1, 1]
-        return (epi, cfg, frames[s], bounds[s] - a, cam[a:b], norm[a:b], C)
+        return (epi, cfg, frames[s], bounds[s] - a, cam[a:b], norm[a:b], C,
+                None if area is None else area[a:b])
 
     results: list[list[PointCloud]] = [None] * len(chunks)  # type: ignore[list-item]
     done = 0

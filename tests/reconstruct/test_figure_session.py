@@ -21,7 +21,6 @@ MAX_SPURIOUS = 0.002
 # 0.05 px at ~5.5 m with f ~1200 px is 0.23 mm across each ray: points built from unmerged
 # blobs only; points using a merged blob (two markers' area-weighted centroid) are biased
 RMS_3D_M = 0.0005
-MIN_BREAKS_AT_OCCLUSION = 0.8          # measured 0.88 (10 s) / see the strict test below
 FIG_SEED = 21
 
 
@@ -56,21 +55,32 @@ def test_spurious_points_at_most_0_2_percent(session):
     assert s["spurious"] / s["points"] <= MAX_SPURIOUS, s
 
 
-def test_no_identity_swaps_and_breaks_mostly_at_occlusions(session):
+def test_no_identity_swaps(session):
     _, _, obs, _, traj = session
     st = score_identity(traj, obs)
-    assert st["swaps"] == 0, st
-    assert st["breaks"] > 0
-    assert st["breaks_at_occlusion"] / st["breaks"] >= MIN_BREAKS_AT_OCCLUSION, st
+    assert st["swaps"] == 0 and st["swaps_any"] == 0, st
 
 
-@pytest.mark.xfail(strict=True, reason="some breaks happen where a marker passes within "
-                   "~15-28 mm of another (tracks end as ambiguous or merged) or after a "
-                   "sample biased by a merged blob")
 def test_breaks_only_at_true_occlusions(session):
     _, _, obs, _, traj = session
     st = score_identity(traj, obs)
+    assert st["breaks"] > 0 and st["breaks"] == st["breaks_at_occlusion"]
     assert st["unjustified"] == [], st
+
+
+def test_without_blob_areas_merged_points_remain(session):
+    """The merged-blob test needs areas: without them (a plain x,y CSV) points built from
+    merged blobs come back (measured 0.25% spurious on 60 s, docs/figures-reconstruct.md)."""
+    rig, _, obs, clouds, _ = session
+    from capture.detections import Detections2D
+    from reconstruct.pipeline import reconstruct_clouds
+    d = obs.detections
+    plain = Detections2D(frame=d.frame, camera=d.camera, xy=d.xy,
+                         camera_names=d.camera_names, rate_hz=RATE_HZ)
+    s0 = score_clouds(reconstruct_clouds(plain, rig, workers=2), obs)
+    s1 = score_clouds(clouds, obs)
+    assert s1["spurious"] < s0["spurious"]
+    assert np.sqrt(np.mean(s1["errors"] ** 2)) < np.sqrt(np.mean(s0["errors"] ** 2))
 
 
 def test_rigid_gap_fill_from_segment_map_recovers_truth(session):

@@ -64,7 +64,7 @@ def test_in_process_matches_parallel_and_camera_order(session):
     perm = np.arange(len(rig))[::-1]
     det2 = Detections2D(frame=det.frame[sel], camera=perm[det.camera[sel]], xy=det.xy[sel],
                         camera_names=tuple(np.array(rig.names)[np.argsort(perm)]),
-                        rate_hz=RATE_HZ)
+                        rate_hz=RATE_HZ, area_px=det.area_px[sel])
     c2, _ = reconstruct_sequence(det2, rig, cfg, workers=1)
     for a, b in zip(c2.clouds, clouds.clouds[:30]):
         assert len(a) == len(b)
