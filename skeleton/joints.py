@@ -194,8 +194,8 @@ def _fit_world(traj: np.ndarray, idx: np.ndarray) -> JointFit:
 # --- topology cost ----------------------------------------------------------------------
 COST_FRAMES = 200        # frames sampled (evenly) for the joint cost of one segment pair
 COST_ITERS = 60
-SCREEN_FRAMES = 40
-SCREEN_ITERS = 40
+SCREEN_FRAMES = 30
+SCREEN_ITERS = 25
 REFINE_STARTS = 2
 # starts along each 2-marker line, in units of marker 0 -> marker 1
 LINE_STARTS = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5)
