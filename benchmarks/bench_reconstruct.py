@@ -1,5 +1,6 @@
 """Offline reprocessing of a simulated 8-camera, 120 Hz session on the hw_sim figure.
 
+Input: the 2D detection table with blob areas (``--no-area``: without, as from a plain CSV).
 Scene: ``hw_sim.scenes.figure`` (the articulated humanoid of ``hw_sim.articulated``: 45
 markers on 15 segments whose capsules hide markers), ``hw_sim.rig.make_rig(8)`` with mild
 distortion, ``hw_sim.observe.observe`` with occlusion on, 0.05 px centroid noise and
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import sys
 import time
 from pathlib import Path
@@ -33,6 +35,7 @@ from hw_sim.rig import make_rig  # noqa: E402
 from hw_sim.scenes import figure  # noqa: E402
 from reconstruct.pipeline import (ReconstructionConfig, postprocess,  # noqa: E402
                                   reconstruct_sequence)
+from reconstruct.tracking import track  # noqa: E402
 from reconstruct.types import Trajectories  # noqa: E402
 from tests.reconstruct.simdata import (clean_point_errors, match_points,  # noqa: E402
                                        score_clouds, score_identity)
@@ -48,6 +51,13 @@ def spurious_rate(rig, scene, fraction, rng):
     probe = observe(rig, scene, rng=rng, noise_px=0.0)
     per_cam_frame = len(probe.detections) / (scene.n_frames * len(rig))
     return fraction / (1 - fraction) * per_cam_frame
+
+
+def cpu_s() -> float:
+    """CPU seconds of this process and its finished children (the worker processes)."""
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + ch.ru_utime + ch.ru_stime
 
 
 def oracle_labelled(traj, obs, tol_m=0.005):
@@ -67,6 +77,9 @@ def main():
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-area", action="store_true",
+                    help="drop the blob areas (as from a plain frame,camera,x,y CSV): no "
+                         "merged-blob test in the correspondence")
     a = ap.parse_args()
     T = int(a.seconds * RATE_HZ)
     rig = make_rig(8, dist=DIST, rng=a.seed)
@@ -77,6 +90,10 @@ def main():
     rate = spurious_rate(rig, scene, SPURIOUS_FRACTION, a.seed + 3)
     obs = observe(rig, scene, rng=a.seed + 2, noise_px=NOISE_PX, spurious_per_frame=rate)
     det = obs.detections
+    if a.no_area:
+        det = Detections2D(frame=det.frame, camera=det.camera, xy=det.xy,
+                           camera_names=det.camera_names, rate_hz=det.rate_hz)
+    print(f"input: 2D detections {'WITHOUT' if a.no_area else 'with'} blob areas")
     print(f"scene: hw_sim figure, {scene.n_markers} markers on {fig.n_segments} segments, "
           f"{T} frames ({a.seconds:g} s at {RATE_HZ:g} Hz), 8 cameras, {len(det)} blobs, "
           f"spurious blobs {(obs.marker_id < 0).mean():.2%} ({rate:.3f}/camera-frame), "
@@ -85,9 +102,14 @@ def main():
           f"{obs.merged_row.mean():.2%} of rows; noise {NOISE_PX} px")
     cfg = ReconstructionConfig()
     load0 = os.getloadavg()[0]
+    c0 = cpu_s()
     t0 = time.perf_counter()
     clouds, traj = reconstruct_sequence(det, rig, cfg, workers=a.workers)
     wall = time.perf_counter() - t0
+    cpu = cpu_s() - c0
+    t0 = time.perf_counter()
+    track(clouds, cfg.tracking)
+    wall_track = time.perf_counter() - t0
     s = score_clouds(clouds, obs)
     e = s.pop("errors")
     ce = clean_point_errors(clouds, obs)
@@ -133,9 +155,13 @@ def main():
     print(f"wall time {wall:.1f} s with {a.workers} workers = {wall / a.seconds:.3f} x the "
           f"session duration ({T / wall:.0f} frames/s; load average before {load0:.2f} on "
           f"{os.cpu_count()} cores); 2D detections in, blob detection not included")
+    print(f"CPU time {cpu:.1f} s = {cpu / a.seconds:.3f} CPU-s per session second: on "
+          f"{a.workers} unshared cores >= {cpu / a.workers / a.seconds:.3f} x the session "
+          f"duration; tracking (serial) {wall_track:.1f} s of the wall time")
     sub = det.frame < int(min(10.0, a.seconds) * RATE_HZ)
     d10 = Detections2D(frame=det.frame[sub], camera=det.camera[sub], xy=det.xy[sub],
-                       camera_names=det.camera_names, rate_hz=RATE_HZ)
+                       camera_names=det.camera_names, rate_hz=RATE_HZ,
+                       area_px=None if det.area_px is None else det.area_px[sub])
     n10 = int(sub.sum() and det.frame[sub].max() + 1)
     t0 = time.perf_counter()
     reconstruct_sequence(d10, rig, cfg, workers=1)
