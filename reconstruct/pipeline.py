@@ -1,8 +1,9 @@
 """Offline reconstruction of a recording: 2D detections -> point clouds -> trajectories.
 
 Stages: undistortion of every blob (``Camera.pixel_to_normalized``), per-frame spatial
-correspondence and triangulation (``reconstruct.correspondence``; frames are independent and
-run in parallel chunks on a ``ProcessPoolExecutor``), tracking (``reconstruct.tracking``),
+correspondence and triangulation (``reconstruct.correspondence``, with its merged-blob test
+when ``Detections2D.area_px`` is present; frames are independent and run in parallel chunks
+on a ``ProcessPoolExecutor``), tracking (``reconstruct.tracking``),
 then :func:`postprocess`: rigid-body gap filling from the other markers of the same segment
 when a segment map is given, spline gap filling of short gaps (``reconstruct.gapfill``),
 zero-phase Butterworth filtering (``reconstruct.filtering``) and rigidity flags

@@ -149,3 +149,49 @@ def test_result_does_not_depend_on_blob_order():
         for c in range(8):   # obs indexes the permuted list: same blobs
             used = pc.cameras[b, c]
             assert np.array_equal(perms[c][pc.obs[b, c][used]], ref.obs[a, c][ref.cameras[a, c]])
+
+
+def test_merged_blob_ray_is_dropped_when_areas_are_given():
+    """Marker 0's blob in camera 0 is merged with a neighbour's (centroid 0.5 px off, below
+    the bad-ray threshold; twice the area): with areas its ray is dropped and the point is
+    exact; without areas it is used and biases the point. A marker whose only views are
+    merged blobs gives no point."""
+    rig = make_rig(8)
+    scene = static_markers(20, 1, rng=3, min_separation_m=0.2)
+    obs = observe(rig, scene, rng=4, noise_px=0.0, occlusion=False, merge_blobs=False)
+    X = scene.positions[0]
+    det = obs.detections
+    cam, mid, xy, area = det.camera, obs.marker_id, det.xy.copy(), det.area_px.copy()
+    row = np.flatnonzero((cam == 0) & (mid == 0))[0]
+    xy[row] += [0.5, 0.0]
+    area[row] *= 2.0
+    blobs = [rig[c].pixel_to_normalized(xy[cam == c]) for c in range(len(rig))]
+    areas = [area[cam == c] for c in range(len(rig))]
+    ids = [mid[cam == c] for c in range(len(rig))]
+    epi = epipolar_geometry(rig_arrays(rig))
+    cfg = CorrespondenceConfig()
+
+    def point_of_marker0(pc):
+        for k in range(len(pc)):
+            c = np.flatnonzero(pc.cameras[k])[0]
+            if ids[c][pc.obs[k, c]] == 0:
+                return k
+        raise AssertionError("marker 0 not reconstructed")
+
+    with_a = match_frame(blobs, epi, cfg, areas=areas)
+    k = point_of_marker0(with_a)
+    assert with_a.obs[k, 0] == -1
+    assert np.linalg.norm(with_a.points[k] - X[0]) < 1e-6
+    without = match_frame(blobs, epi, cfg)
+    k = point_of_marker0(without)
+    assert without.obs[k, 0] >= 0
+    assert np.linalg.norm(without.points[k] - X[0]) > 1e-4
+    # every view of marker 0 merged: no point for it
+    area2 = area.copy()
+    area2[mid == 0] *= 2.0
+    only = match_frame(blobs, epi, cfg, areas=[area2[cam == c] for c in range(len(rig))])
+    assert all(ids[c][only.obs[k, c]] != 0 for k in range(len(only))
+               for c in np.flatnonzero(only.cameras[k]))
+    assert len(only) == len(with_a) - 1
+    with pytest.raises(ValueError, match="merged_size_ratio"):
+        CorrespondenceConfig(merged_size_ratio=1.0)
