@@ -97,6 +97,7 @@ class ReconstructSummary:
         return self.n_frames / self.rate_hz
 
     def table(self) -> str:
+        ratio = self.reconstruct_s / max(self.duration_s, 1e-9)
         rows = [
             ("output", str(self.output)),
             ("input", self.source),
@@ -110,8 +111,7 @@ class ReconstructSummary:
             ("mean residual", f"{self.mean_residual_mm:.3f} mm"),
             ("time: detections", f"{self.detect_s:.2f} s"),
             ("time: reconstruction", f"{self.reconstruct_s:.2f} s with {self.workers} "
-                                     f"worker(s) = {self.reconstruct_s / max(self.duration_s, 1e-9):.2f}"
-                                     " x session duration"),
+                                     f"worker(s) = {ratio:.2f} x session duration"),
         ]
         w = max(len(k) for k, _ in rows)
         return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
