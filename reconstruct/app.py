@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -27,7 +26,6 @@ __all__ = ["OUTPUT_SUFFIXES", "ReconstructJob", "ReconstructSummary", "load_dete
            "run_reconstruct"]
 
 OUTPUT_SUFFIXES = (".c3d", ".trc", ".csv")
-C3D_MAX_LABELS = 255
 
 #: progress callback: (stage name, done, total)
 Progress = Callable[[str, int, int], None]
@@ -211,17 +209,10 @@ def run_reconstruct(job: ReconstructJob, progress: Progress | None = None
         det, rig, job.config, workers=workers,
         progress=(lambda d, n: progress("reconstruction", d, n)) if progress else None)
     reconstruct_s = time.perf_counter() - t0
-    if job.output.suffix.lower() == ".c3d" and traj.n_markers > C3D_MAX_LABELS:
-        # reconstruct.marker_files.write_c3d writes one POINT:LABELS parameter, whose
-        # dimensions are single bytes (no LABELS2 continuation yet)
-        raise ValueError(f"{traj.n_markers} trajectories exceed the {C3D_MAX_LABELS} labels "
-                         f"the C3D writer supports; write .trc or .csv instead")
     md = MarkerData(positions=traj.positions, labels=traj.labels, rate_hz=traj.rate_hz,
                     residual_mm=traj.residual_mm, first_frame=traj.first_frame + 1)
     job.output.parent.mkdir(parents=True, exist_ok=True)
-    with warnings.catch_warnings():     # the c3d package warns that a file has no analog data
-        warnings.filterwarnings("ignore", message="No analog data")
-        write_markers(md, job.output)
+    write_markers(md, job.output)
     present = traj.present()
     res = traj.residual_mm[np.isfinite(traj.residual_mm)]
     return ReconstructSummary(

@@ -106,7 +106,7 @@ def write_c3d(data: MarkerData, path) -> Path:
         frames.append((pts, empty_analog))
     if frames:
         w.add_frames(frames)
-    w.set_point_labels(list(data.labels))
+    _set_point_labels(w, list(data.labels))
     if data.first_frame != 1:
         w.set_start_frame(int(data.first_frame))
     tmp = path.with_suffix(path.suffix + ".tmp")
@@ -115,6 +115,42 @@ def write_c3d(data: MarkerData, path) -> Path:
         w.write(h)
     tmp.replace(path)
     return path
+
+
+#: A C3D parameter dimension is one byte: labels go 255 at a time into POINT:LABELS,
+#: POINT:LABELS2, POINT:LABELS3, ... (the C3D.org convention that Vicon, Qualisys and ezc3d
+#: follow for large marker sets).
+_LABELS_PER_PARAM = 255
+
+
+def _set_point_labels(w, labels: list[str]) -> None:
+    import c3d
+
+    for k in range(0, max(len(labels), 1), _LABELS_PER_PARAM):
+        chunk = labels[k:k + _LABELS_PER_PARAM]
+        if not chunk:
+            break
+        text, size = c3d.Writer.pack_labels(chunk)
+        suffix = "" if k == 0 else str(k // _LABELS_PER_PARAM + 1)
+        w.point_group.add_str("LABELS" + suffix, "Point labels.", text, size, len(chunk))
+        # the writer would add one DESCRIPTIONS of all markers (too long a dimension)
+        w.point_group.add_str("DESCRIPTIONS" + suffix, "Point descriptions.",
+                              " " * len(chunk), 1, len(chunk))
+
+
+def _point_labels(r) -> list[str]:
+    """POINT:LABELS followed by POINT:LABELS2, LABELS3, ... when present."""
+    out = []
+    for k in range(1, 1000):
+        name = "POINT:LABELS" if k == 1 else f"POINT:LABELS{k}"
+        try:
+            p = r.get(name)
+        except Exception:
+            p = None
+        if p is None:
+            break
+        out += [str(s).strip() for s in p.string_array]
+    return out
 
 
 def read_c3d(path) -> MarkerData:
@@ -139,7 +175,7 @@ def read_c3d(path) -> MarkerData:
         scale = _UNIT_TO_M.get(units)
         if scale is None:
             raise ValueError(f"{path}: unknown POINT:UNITS {units!r}")
-        labels = [s.strip() for s in r.point_labels]
+        labels = _point_labels(r)
         pos, res = [], []
         for _, points, _analog in r.read_frames(copy=True):
             p = np.array(points[:, :3], dtype=np.float64)

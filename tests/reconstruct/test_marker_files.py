@@ -67,3 +67,27 @@ def test_bad_inputs(tmp_path):
     (tmp_path / "bad.trc").write_text("hello\n")
     with pytest.raises(ValueError, match="not a TRC"):
         read_markers(tmp_path / "bad.trc")
+
+
+def test_c3d_with_more_than_255_markers_uses_labels2(tmp_path):
+    """A long unlabelled take has hundreds of trajectories: POINT:LABELS2, LABELS3, ...
+    carry the labels past 255; an independent reader sees every marker and label."""
+    ezc3d = pytest.importorskip("ezc3d")
+    rng = np.random.default_rng(5)
+    P = rng.normal(size=(6, 600, 3))
+    P[2, 300] = np.nan
+    labels = tuple(f"T{i}" for i in range(600))
+    path = write_markers(MarkerData(positions=P, labels=labels, rate_hz=120.0),
+                         tmp_path / "big.c3d")
+    back = read_markers(path)
+    assert back.labels == labels
+    np.testing.assert_allclose(back.positions, P, atol=1e-6)   # float32 mm storage
+    c = ezc3d.c3d(str(path))
+    assert c["data"]["points"].shape == (4, 600, 6)
+    point = c["parameters"]["POINT"]
+    got = list(point["LABELS"]["value"]) + list(point["LABELS2"]["value"]) \
+        + list(point["LABELS3"]["value"])
+    assert [s.strip() for s in got] == list(labels)
+    xyz = np.transpose(c["data"]["points"][:3], (2, 1, 0)) / 1000.0
+    ok = np.isfinite(P)
+    np.testing.assert_allclose(xyz[ok], P[ok], atol=1e-6)
