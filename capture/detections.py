@@ -125,7 +125,8 @@ class Detections2D:
 
 
 def write_detections_csv(det: Detections2D, path) -> Path:
-    """Write ``frame,camera,x,y`` with camera names; rate and order in a leading comment."""
+    """Write ``frame,camera,x,y`` (and ``area_px`` when the detections carry blob areas)
+    with camera names; rate and order in a leading comment."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as f:
@@ -134,16 +135,22 @@ def write_detections_csv(det: Detections2D, path) -> Path:
             f.write(f" rate_hz={det.rate_hz:g}")
         f.write("\n")
         w = csv.writer(f)
-        w.writerow(["frame", "camera", "x", "y"])
         names = det.camera_names
-        for fr, c, (x, y) in zip(det.frame, det.camera, det.xy):
-            w.writerow([int(fr), names[c], repr(float(x)), repr(float(y))])
+        if det.area_px is None:
+            w.writerow(["frame", "camera", "x", "y"])
+            for fr, c, (x, y) in zip(det.frame, det.camera, det.xy):
+                w.writerow([int(fr), names[c], repr(float(x)), repr(float(y))])
+        else:
+            w.writerow(["frame", "camera", "x", "y", "area_px"])
+            for fr, c, (x, y), a in zip(det.frame, det.camera, det.xy, det.area_px):
+                w.writerow([int(fr), names[c], repr(float(x)), repr(float(y)), repr(float(a))])
     return path
 
 
 def read_detections_csv(path, camera_names: Sequence[str] | None = None,
                         rate_hz: float | None = None) -> Detections2D:
-    """Read a ``frame,camera,x,y`` CSV.
+    """Read a ``frame,camera,x,y`` CSV (an optional ``area_px`` column gives blob areas,
+    which correspondence uses to spot merged blobs).
 
     ``camera`` entries may be names or integer indices. ``camera_names`` (e.g. the rig's order)
     wins; otherwise the ``# cameras=`` comment line, otherwise names in order of first
@@ -172,12 +179,14 @@ def read_detections_csv(path, camera_names: Sequence[str] | None = None,
     if not need.issubset(cols):
         raise ValueError(f"{path}: columns {cols}, expected at least frame,camera,x,y")
     names = tuple(camera_names) if camera_names is not None else header_names
-    fr, cam_raw, xy = [], [], []
+    has_area = "area_px" in cols
+    fr, cam_raw, xy, area = [], [], [], []
     for lineno, row in enumerate(reader, start=2):
         row = {k.strip(): (v.strip() if isinstance(v, str) else v) for k, v in row.items()}
         try:
             f_i = int(row["frame"])
             x, y = float(row["x"]), float(row["y"])
+            a = float(row["area_px"]) if has_area else np.nan
         except (TypeError, ValueError) as e:
             raise ValueError(f"{path}:{lineno}: bad row {row}: {e}") from e
         if not (np.isfinite(x) and np.isfinite(y)):
@@ -185,6 +194,7 @@ def read_detections_csv(path, camera_names: Sequence[str] | None = None,
         fr.append(f_i)
         cam_raw.append(str(row["camera"]))
         xy.append((x, y))
+        area.append(a)
     if names is None:
         seen: list[str] = []
         for c in cam_raw:
@@ -206,4 +216,5 @@ def read_detections_csv(path, camera_names: Sequence[str] | None = None,
             raise ValueError(f"{path}: unknown camera {c!r}; known cameras {list(names)}")
     return Detections2D(frame=np.asarray(fr, np.int64), camera=np.asarray(cam, np.int64),
                         xy=np.asarray(xy, np.float64).reshape(-1, 2), camera_names=names,
-                        rate_hz=rate_hz)
+                        rate_hz=rate_hz,
+                        area_px=np.asarray(area, np.float64) if has_area else None)

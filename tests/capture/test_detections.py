@@ -42,3 +42,21 @@ def test_bad_inputs(tmp_path):
     p.write_text("frame,camera,x,y\nzero,0,1,2\n")
     with pytest.raises(ValueError, match=":2: bad row"):
         read_detections_csv(p)
+
+
+def test_csv_roundtrip_keeps_blob_areas(tmp_path):
+    """Blob areas (which correspondence uses to spot merged blobs) survive the CSV; a file
+    without the column reads back without areas."""
+    rng = np.random.default_rng(1)
+    det = Detections2D(frame=np.array([0, 0, 1]), camera=np.array([0, 1, 1]),
+                       xy=rng.uniform(0, 100, (3, 2)), camera_names=("a", "b"), rate_hz=100.0,
+                       area_px=np.array([12.0, 30.5, 7.25]))
+    back = read_detections_csv(write_detections_csv(det, tmp_path / "a.csv"))
+    np.testing.assert_array_equal(back.area_px, det.area_px)
+    np.testing.assert_array_equal(back.xy, det.xy)
+    p = tmp_path / "plain.csv"
+    p.write_text("frame,camera,x,y\n0,a,1,2\n")
+    assert read_detections_csv(p).area_px is None
+    p.write_text("frame,camera,x,y,area_px\n0,a,1,2,big\n")
+    with pytest.raises(ValueError, match="big"):
+        read_detections_csv(p)
