@@ -16,6 +16,15 @@ being as close to r's prediction. Every track involved ends there and the points
 tracks: the trajectories are broken rather than swapped. Likewise when a track vanishes
 within ``merge_radius_m`` of another track's new point (the two markers' blobs merged, so
 that point may be either marker), both tracks end.
+
+Deferred decision (re-linking): a track ended by such a guard, or by one bad point, is often
+continued unambiguously a few frames later. After the forward pass, a track A ending at frame
+e is joined to a track B starting at s (1 <= s - e <= ``relink_max_gap`` + 1) when, over a
+multi-frame window, B's first samples lie within ``relink_tol_m`` of A's extrapolation (a
+quadratic fit of A's last samples, robust to one outlier) and A's last samples within it of
+B's back-extrapolation, and every other track with samples in either window is farther by
+at least ``relink_margin_m``, in both directions. Otherwise the gap stays (gaps rather than
+swaps).
 Conventions: docs/conventions.md [arrays] ((T, M, 3), NaN gaps), [units], [time].
 """
 from __future__ import annotations
@@ -52,6 +61,15 @@ class TrackingConfig:
             this margin makes the assignment ambiguous: the tracks end (None: off).
         merge_radius_m: a track that vanishes within this distance of another track's new
             point ends, and so does the other (the two markers' blobs have merged; None: off).
+        relink_max_gap: after tracking, join a track ending at frame e to one starting at
+            most this many missing frames later when the join is unambiguous (None: off).
+        relink_tol_m: a join needs the median distance between each track's samples and the
+            other track's extrapolation (forward and backward) below this.
+        relink_margin_m: every other track near either window must be farther than the
+            joined one by at least this margin, else no join.
+        relink_fit_frames: samples (up to) of each track fitted by a quadratic in time; a
+            track with fewer than 3 samples is never joined.
+        relink_check_frames: frames past the gap (or before it) whose samples are compared.
     """
 
     model: str = "velocity"
@@ -63,6 +81,11 @@ class TrackingConfig:
     min_length: int = 1
     ambiguity_margin_m: float | None = 0.004
     merge_radius_m: float | None = 0.025
+    relink_max_gap: int | None = 3
+    relink_tol_m: float = 0.006
+    relink_margin_m: float = 0.008
+    relink_fit_frames: int = 8
+    relink_check_frames: int = 5
 
     def __post_init__(self):
         if self.model not in _MODELS:
@@ -79,6 +102,15 @@ class TrackingConfig:
         if self.ambiguity_margin_m is not None and not self.ambiguity_margin_m >= 0:
             raise ValueError(f"ambiguity_margin_m={self.ambiguity_margin_m}, expected >= 0 "
                              "or None")
+        if self.relink_max_gap is not None and self.relink_max_gap < 0:
+            raise ValueError(f"relink_max_gap={self.relink_max_gap}, expected >= 0 or None")
+        for name in ("relink_tol_m", "relink_margin_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}={getattr(self, name)}, expected > 0")
+        if self.relink_fit_frames < 3:
+            raise ValueError(f"relink_fit_frames={self.relink_fit_frames}, expected >= 3")
+        if self.relink_check_frames < 1:
+            raise ValueError(f"relink_check_frames={self.relink_check_frames}, expected >= 1")
 
 
 def _drop_merged(pred, pts, res_px, missed, r, c, radius, jump=0.0015, resid_px=0.3):
@@ -130,6 +162,95 @@ def _drop_ambiguous(cost, r, c, margin, established):
     ended_arr = np.array(sorted(ended), np.int64)
     keep = ~np.isin(r, ended_arr)
     return r[keep], c[keep], ended_arr
+
+
+def _fit(t, p, outlier_m=0.0015):
+    """Quadratic (linear for 3 samples) least-squares fit of ``p`` (n, 3) over frames ``t``.
+    When a sample is off by more than ``outlier_m`` (and n >= 5), the fit leaving out the one
+    sample that gives the smallest worst residual is used instead (an end sample has too much
+    leverage to show up as the largest residual of the full fit).
+    Returns a function of frames -> (k, 3)."""
+    t0 = t.mean()
+
+    def solve(keep):
+        deg = 2 if keep.sum() >= 4 else 1
+        V = np.vander(t[keep] - t0, deg + 1)
+        coef = np.linalg.lstsq(V, p[keep], rcond=None)[0]
+        return deg, coef, np.linalg.norm(V @ coef - p[keep], axis=1).max()
+
+    every = np.ones(t.size, bool)
+    deg, coef, worst = solve(every)
+    if worst > outlier_m and t.size >= 5:
+        fits = [solve(every & (np.arange(t.size) != i)) for i in range(t.size)]
+        deg, coef, _ = min(fits, key=lambda x: x[2])
+    return lambda tq: np.vander(np.asarray(tq, float) - t0, deg + 1) @ coef
+
+
+def _window_dist(pos, present, f, frames):
+    """Median distance (n_tracks,) of each track's samples in ``frames`` to the fit ``f``
+    (inf for tracks with no sample there)."""
+    P = pos[frames]                                             # (k, n, 3)
+    d = np.linalg.norm(P - f(frames)[:, None, :], axis=2)       # (k, n), NaN where absent
+    d = np.where(present[frames], d, np.nan)
+    out = np.full(pos.shape[1], np.inf)
+    has = present[frames].any(axis=0)
+    out[has] = np.nanmedian(d[:, has], axis=0)
+    return out
+
+
+def _relink(pos, cfg):
+    """Root track of each track (n,) after joining unambiguous continuations, see the module
+    docstring."""
+    T, n = pos.shape[:2]
+    present = np.all(np.isfinite(pos), axis=2)
+    cnt = present.sum(axis=0)
+    first = np.argmax(present, axis=0)
+    last = T - 1 - np.argmax(present[::-1], axis=0)
+    W, nf, nc = cfg.relink_max_gap, cfg.relink_fit_frames, cfg.relink_check_frames
+    tol, margin = cfg.relink_tol_m, cfg.relink_margin_m
+    ok = cnt >= 3
+    fits = {}
+
+    def fit(k, end):
+        if (k, end) not in fits:
+            t = np.flatnonzero(present[:, k])
+            t = t[-nf:] if end else t[:nf]
+            fits[k, end] = _fit(t, pos[t, k])
+        return fits[k, end]
+
+    pairs = []
+    for a in np.flatnonzero(ok & (last < T - 1)):
+        e = last[a]
+        for b in np.flatnonzero(ok & (first > e) & (first <= e + W + 1)):
+            s = first[b]
+            # B's first frames against A's extrapolation, A's last frames against B's
+            fw = np.arange(s, min(T, s + nc))
+            bw = np.arange(max(0, e - nc + 1), e + 1)
+            da = _window_dist(pos, present, fit(a, True), fw)
+            db = _window_dist(pos, present, fit(b, False), bw)
+            dab, dba = da[b], db[a]
+            if not (dab < tol and dba < tol):
+                continue
+            da[[a, b]] = db[[a, b]] = np.inf
+            # every other track near either window must be clearly farther
+            if da.min() < dab + margin or db.min() < dba + margin:
+                continue
+            pairs.append((dab + dba, a, b))
+    root = np.arange(n)
+    nxt = {}
+    used_a, used_b = set(), set()
+    for _, a, b in sorted(pairs):
+        if a in used_a or b in used_b:
+            continue
+        used_a.add(a)
+        used_b.add(b)
+        nxt[a] = b
+    for a in sorted(set(nxt) - set(nxt.values()), key=lambda k: first[k]):
+        k = a
+        while k in nxt:
+            k = nxt[k]
+            root[k] = a
+    return root
 
 
 def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
@@ -237,6 +358,11 @@ def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
     ii = np.concatenate(rec_id)
     pp = np.concatenate(rec_p)
     rr = np.concatenate(rec_r)
+    if cfg.relink_max_gap is not None and next_id > 1:
+        dense = np.full((T, next_id, 3), np.nan)
+        dense[tt, ii] = pp
+        ii = _relink(dense, cfg)[ii]
+        del dense
     length = np.bincount(ii, minlength=next_id)
     keep_ids = np.flatnonzero(length >= cfg.min_length)
     remap = np.full(next_id, -1)
