@@ -239,11 +239,11 @@ def test_break_without_occlusion_is_relinked():
 
 
 def test_relink_refuses_two_continuations_within_the_margin():
-    """As above, but a second marker appears 5 mm from the first one's continuation in the
-    frame after the break: either new track could continue the old one, so none does."""
+    """As above, but a second marker appears 7 mm from the first one's continuation in the
+    frame after the break: either new track could continue the old one within the 8 mm
+    margin, so none does; with a 1 mm margin the (right) join is made."""
     P = _bad_point_scene()
-    P = np.concatenate([P, P + [0.0, 0.0, 0.005]], axis=1)
-    P[60, 1] = P[60, 0] - [0.0, 0.008, 0.0] + [0.0, 0.0, 0.005]
+    P = np.concatenate([P, P + [0.0, 0.0, 0.007]], axis=1)
     present = np.ones(P.shape[:2], bool)
     present[:61, 1] = False                   # the second marker appears at frame 61
     clouds, truth = _clouds(P, present, 12)
@@ -253,6 +253,12 @@ def test_relink_refuses_two_continuations_within_the_margin():
         assert len(set(own[:, m][own[:, m] >= 0].tolist())) == 1
     first = [m for m in range(traj.n_markers) if own[0, m] == 0]
     assert len(first) == 1 and np.flatnonzero(own[:, first[0]] >= 0).max() == 60
+    loose = track(clouds, TrackingConfig(max_gap_frames=MAX_GAP, relink_margin_m=0.001))
+    own = _owner(loose, clouds, truth)
+    m0 = [m for m in range(loose.n_markers) if own[0, m] == 0]
+    assert len(m0) == 1 and np.flatnonzero(own[:, m0[0]] >= 0).max() == 119
+    for m in range(loose.n_markers):
+        assert len(set(own[:, m][own[:, m] >= 0].tolist())) == 1
     with pytest.raises(ValueError, match="relink_max_gap"):
         TrackingConfig(relink_max_gap=-1)
     with pytest.raises(ValueError, match="relink_fit_frames"):
