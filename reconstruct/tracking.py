@@ -186,26 +186,31 @@ def _fit(t, p, outlier_m=0.0015):
     return lambda tq: np.vander(np.asarray(tq, float) - t0, deg + 1) @ coef
 
 
-def _window_dist(pos, present, f, frames):
-    """Median distance (n_tracks,) of each track's samples in ``frames`` to the fit ``f``
-    (inf for tracks with no sample there)."""
-    P = pos[frames]                                             # (k, n, 3)
-    d = np.linalg.norm(P - f(frames)[:, None, :], axis=2)       # (k, n), NaN where absent
-    d = np.where(present[frames], d, np.nan)
-    out = np.full(pos.shape[1], np.inf)
-    has = present[frames].any(axis=0)
-    out[has] = np.nanmedian(d[:, has], axis=0)
+def _window_dist(tt, ii, pp, f, lo, hi, n):
+    """Median distance (n,) of each track's samples in frames ``lo..hi-1`` to the fit ``f``
+    (inf for tracks with no sample there); samples ``tt, ii, pp`` sorted by frame."""
+    a, b = np.searchsorted(tt, [lo, hi])
+    out = np.full(n, np.inf)
+    if a == b:
+        return out
+    d = np.linalg.norm(pp[a:b] - f(tt[a:b]), axis=1)
+    ids = ii[a:b]
+    for k in np.unique(ids):
+        out[k] = np.median(d[ids == k])
     return out
 
 
-def _relink(pos, cfg):
-    """Root track of each track (n,) after joining unambiguous continuations, see the module
-    docstring."""
-    T, n = pos.shape[:2]
-    present = np.all(np.isfinite(pos), axis=2)
-    cnt = present.sum(axis=0)
-    first = np.argmax(present, axis=0)
-    last = T - 1 - np.argmax(present[::-1], axis=0)
+def _relink(tt, ii, pp, n, T, cfg):
+    """Root track (n,) of each of the ``n`` tracks after joining unambiguous continuations
+    (module docstring); samples: frames ``tt``, track ids ``ii``, points ``pp`` (sorted by
+    frame)."""
+    cnt = np.bincount(ii, minlength=n)
+    order = np.lexsort((tt, ii))                      # by track, then frame
+    start = np.searchsorted(ii[order], np.arange(n + 1))
+    first = np.full(n, T)
+    last = np.full(n, -1)
+    first[cnt > 0] = tt[order[start[:-1][cnt > 0]]]
+    last[cnt > 0] = tt[order[start[1:][cnt > 0] - 1]]
     W, nf, nc = cfg.relink_max_gap, cfg.relink_fit_frames, cfg.relink_check_frames
     tol, margin = cfg.relink_tol_m, cfg.relink_margin_m
     ok = cnt >= 3
@@ -213,9 +218,9 @@ def _relink(pos, cfg):
 
     def fit(k, end):
         if (k, end) not in fits:
-            t = np.flatnonzero(present[:, k])
-            t = t[-nf:] if end else t[:nf]
-            fits[k, end] = _fit(t, pos[t, k])
+            rows = order[start[k]:start[k + 1]]
+            rows = rows[-nf:] if end else rows[:nf]
+            fits[k, end] = _fit(tt[rows].astype(np.float64), pp[rows])
         return fits[k, end]
 
     pairs = []
@@ -224,10 +229,8 @@ def _relink(pos, cfg):
         for b in np.flatnonzero(ok & (first > e) & (first <= e + W + 1)):
             s = first[b]
             # B's first frames against A's extrapolation, A's last frames against B's
-            fw = np.arange(s, min(T, s + nc))
-            bw = np.arange(max(0, e - nc + 1), e + 1)
-            da = _window_dist(pos, present, fit(a, True), fw)
-            db = _window_dist(pos, present, fit(b, False), bw)
+            da = _window_dist(tt, ii, pp, fit(a, True), s, s + nc, n)
+            db = _window_dist(tt, ii, pp, fit(b, False), e - nc + 1, e + 1, n)
             dab, dba = da[b], db[a]
             if not (dab < tol and dba < tol):
                 continue
@@ -359,10 +362,7 @@ def track(clouds: MarkerCloudSequence, cfg: TrackingConfig | None = None,
     pp = np.concatenate(rec_p)
     rr = np.concatenate(rec_r)
     if cfg.relink_max_gap is not None and next_id > 1:
-        dense = np.full((T, next_id, 3), np.nan)
-        dense[tt, ii] = pp
-        ii = _relink(dense, cfg)[ii]
-        del dense
+        ii = _relink(tt, ii, pp, next_id, T, cfg)[ii]
     length = np.bincount(ii, minlength=next_id)
     keep_ids = np.flatnonzero(length >= cfg.min_length)
     remap = np.full(next_id, -1)
