@@ -37,7 +37,8 @@ class JointFit:
     where the reference is not fully seen); residual_m (rms distance residual); hinge;
     axis_local (3,) or NaN; sv_ratio; cost_m (the noise-normalised topology cost: the
     residual weighted by its propagated noise factor, over its degrees of freedom; ~ the
-    marker noise sd for a true joint)."""
+    marker noise sd for a true joint); axis_world (T, 3) the hinge axis per frame (NaN where
+    unknown; None when not a hinge)."""
 
     ok: bool
     reason: str
@@ -49,6 +50,7 @@ class JointFit:
     axis_local: np.ndarray
     sv_ratio: float
     cost_m: float = np.inf
+    axis_world: np.ndarray | None = None
 
 
 def _fail(T, reason):
@@ -148,8 +150,13 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
             res = float(np.sqrt(np.mean((fun(np.concatenate([c, p[3:]])) * wsq) ** 2)))
     world = np.full((T, 3), np.nan)
     world[full] = np.einsum("tji,tj->ti", R, c[None] - t)
+    axis_world = None
+    if hinge:
+        axis_world = np.full((T, 3), np.nan)
+        axis_world[full] = np.einsum("tji,j->ti", R, axis)
     return JointFit(ok=True, reason="", ref=ref, centre_local=c, world=world, residual_m=res,
-                    hinge=hinge, axis_local=axis, sv_ratio=ratio, cost_m=cost)
+                    hinge=hinge, axis_local=axis, sv_ratio=ratio, cost_m=cost,
+                    axis_world=axis_world)
 
 
 FRAME_ITERS = 8

@@ -17,7 +17,8 @@ from scipy.signal import butter, sosfiltfilt
 
 from skeleton.joints import JointFit, fit_joint, joint_cost
 from skeleton.segments import segment_markers
-from skeleton.topology import skeleton_tree
+from skeleton.junctions import resolve_junctions
+from skeleton.topology import skeleton_tree, tree_from_edges
 
 __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
 
@@ -25,6 +26,9 @@ COST_CUTOFF_HZ = 6.0   # low-pass for the topology costs (biomechanics' usual 6 
 RECHECK = 10.0         # 2+2 pairs re-searched when their quick cost is below RECHECK x ...
 RECHECK_MIN_M = 1e-5   # ... the median tree-edge cost (or this)
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
+JUNCTION_K = 3.0       # tree joints closer than this x the within-segment distance sd: one
+JUNCTION_COST = 1.5    # junction (skeleton.junctions), re-linked with edges costing at most
+                       # this x the largest tree-edge cost
 
 
 def lowpass(traj: np.ndarray, rate_hz: float, cutoff_hz: float = COST_CUTOFF_HZ,
@@ -108,17 +112,36 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                                                  members[j]))
     say(f"joint costs: {S * (S - 1) // 2} pairs")
     top = skeleton_tree(cost)
-    say(f"topology: root segment {top.root}")
     T = traj.shape[0]
     # joint centres from the low-passed data too (all frames, untrimmed) when it is noisy
     fit_data = lowpass(traj, rate_hz) if noisy else traj
+    fits: dict[tuple, JointFit] = {}
+
+    def fit(p, s):
+        if (p, s) not in fits:
+            fits[p, s] = fit_joint(fit_data, members[p], members[s])
+        return fits[p, s]
+
+    # Segments meeting at one point (sibling joints within the joint-centre uncertainty):
+    # the MST's choice among them is arbitrary; re-link each such group around its hub.
+    if S > 2:
+        centres = {frozenset((int(a), int(b))): fit(int(a), int(b)).world for a, b in top.edges}
+        axes = {frozenset((int(a), int(b))): fit(int(a), int(b)).axis_world
+                for a, b in top.edges}
+        tree_cost = cost[tuple(top.edges.T)]
+        edges = resolve_junctions(fit_data, members, top.edges, centres, cost,
+                                  tol_m=JUNCTION_K * noise_m,
+                                  max_cost=JUNCTION_COST * float(np.max(tree_cost)), axes=axes,
+                                  recost=lambda a, b: joint_cost(smooth, members[a], members[b]))
+        top = tree_from_edges(S, edges)
+    say(f"topology: root segment {top.root}")
     jc = np.full((T, S, 3), np.nan)
     joints: list[JointFit | None] = [None] * S
     for s in range(S):
         p = top.parents[s]
         if p < 0:
             continue
-        f = fit_joint(fit_data, members[p], members[s])
+        f = fit(p, s)
         joints[s] = f
         jc[:, s] = f.world
     return SkeletonResult(labels=seg.labels, n_segments=S, eigengap_k=seg.eigengap_k,

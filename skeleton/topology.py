@@ -1,6 +1,7 @@
 """Skeleton topology: minimum spanning tree over segment pairs weighted by joint-fit cost.
 
-``skeleton_tree(cost (S, S)) -> Topology`` (scipy.sparse.csgraph). The root is the tree's
+``skeleton_tree(cost (S, S)) -> Topology`` (scipy.sparse.csgraph);
+``tree_from_edges(S, edges (S-1, 2)) -> Topology`` roots a given tree. The root is the tree's
 centre (the segment with the smallest eccentricity, i.e. the fewest hops to the farthest
 segment; ties: the most connected), as for a pelvis in a human figure.
 """
@@ -12,7 +13,7 @@ import numpy as np
 from scipy.sparse import coo_array
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree, shortest_path
 
-__all__ = ["Topology", "skeleton_tree"]
+__all__ = ["Topology", "skeleton_tree", "tree_from_edges"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -36,7 +37,23 @@ def skeleton_tree(cost: np.ndarray) -> Topology:
     # explicit sparse entries (a dense input would drop near-zero costs as 'no edge')
     g = coo_array((w[i, j] + 1e-300, (i, j)), shape=(S, S)).tocsr()
     mst = minimum_spanning_tree(g).toarray()
-    adj = (mst + mst.T) > 0
+    return _rooted((mst + mst.T) > 0)
+
+
+def tree_from_edges(n_segments: int, edges) -> Topology:
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    S = int(n_segments)
+    if edges.shape[0] != S - 1 or edges.size and (edges.min() < 0 or edges.max() >= S):
+        raise ValueError(f"edges={edges.tolist()}, expected {S - 1} pairs of segments < {S}")
+    adj = np.zeros((S, S), bool)
+    adj[edges[:, 0], edges[:, 1]] = adj[edges[:, 1], edges[:, 0]] = True
+    if S > 1 and np.isinf(shortest_path(adj.astype(float), unweighted=True)).any():
+        raise ValueError(f"edges={edges.tolist()} do not form a tree over {S} segments")
+    return _rooted(adj)
+
+
+def _rooted(adj: np.ndarray) -> Topology:
+    S = adj.shape[0]
     hops = shortest_path(adj.astype(float), unweighted=True, directed=False)
     ecc = hops.max(1)
     root = int(np.lexsort((-adj.sum(1), ecc))[0])

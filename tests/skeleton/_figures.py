@@ -62,3 +62,72 @@ def fragment(markers, rng, n_gaps=(1, 4), gap_frames=(3, 40), n_ghosts=5):
         owner.append(-1)
     perm = g.permutation(len(cols))
     return np.stack(cols, 1)[:, perm], np.array(owner)[perm]
+
+
+def coincident_joint_groups(fig, tol_m):
+    """Groups of segments meeting at (nearly) one point: a parent and those of its children
+    whose joints on it lie within ``tol_m`` of each other (single linkage). List of sets of
+    truth segment indices, each holding the parent and >= 2 children."""
+    groups = []
+    for p in range(fig.n_segments):
+        ch = np.flatnonzero(fig.parents == p)
+        lab = list(range(ch.size))
+        for i in range(ch.size):
+            for j in range(i + 1, ch.size):
+                if np.linalg.norm(fig.joint_offsets[ch[i]] - fig.joint_offsets[ch[j]]) < tol_m:
+                    old, new = lab[j], lab[i]
+                    lab = [new if x == old else x for x in lab]
+        for c in set(lab):
+            members = ch[[x == c for x in lab]]
+            if members.size >= 2:
+                groups.append({p, *members.tolist()})
+    return groups
+
+
+def topology_equivalent(fig, motion, res, tol_m):
+    """Whether the solved tree is kinematically equivalent to the truth (an evaluation
+    metric reported NEXT TO the exact-topology count, never instead of it).
+
+    Equivalent: the segments are recovered, and every solved edge is either a true joint or
+    links two segments of one group of coincident joints (``coincident_joint_groups`` with
+    ``tol_m``: siblings whose joints on the parent lie within ``tol_m``; all of them and the
+    parent then share a fixed rotation point, so each pair of them is a genuine joint and
+    the trees differ only in which pairs are named), with that edge's solved joint centre
+    within ``tol_m`` (median over frames) of the nearest true joint of the group. A spanning
+    tree using only such edges links each group inside itself (the true tree offers no other
+    path between its members), so the skeletons move alike."""
+    segmap = segment_map(fig, res.labels)
+    if segmap is None or res.n_segments != fig.n_segments:
+        return False
+    inv = np.empty(fig.n_segments, int)
+    inv[segmap] = np.arange(fig.n_segments)
+    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
+    groups = coincident_joint_groups(fig, tol_m)
+    for e in range(res.n_segments):
+        p = int(res.parents[e])
+        if p < 0:
+            continue
+        edge = frozenset((int(inv[e]), int(inv[p])))
+        if edge in truth:
+            continue
+        grp = next((g for g in groups if edge <= g), None)
+        if grp is None:
+            return False
+        kids = [s for s in grp if fig.parents[s] >= 0 and fig.parents[s] in grp]
+        err = min(np.nanmedian(np.linalg.norm(res.joints[e].world - motion.joint_centres[:, s],
+                                              axis=1)) for s in kids)
+        if not err <= tol_m:
+            return False
+    return True
+
+
+def min_sibling_joint_distance(fig):
+    """Smallest distance (m) between two sibling joints on their common parent (inf if no
+    segment has two children)."""
+    d = np.inf
+    for p in range(fig.n_segments):
+        off = fig.joint_offsets[fig.parents == p]
+        for i in range(len(off)):
+            for j in range(i + 1, len(off)):
+                d = min(d, float(np.linalg.norm(off[i] - off[j])))
+    return d

@@ -10,6 +10,7 @@ import pytest
 
 from hw_sim.articulated import animate, random_tree
 from skeleton.pipeline import solve_skeleton
+from tests.skeleton._figures import topology_equivalent
 
 N_FIGURES = 50
 N_FRAMES = 600
@@ -17,6 +18,7 @@ NOISE_M = 1e-3
 MIN_EXACT_CLEAN = 49        # topology exactly right, noise-free
 MEDIAN_CLEAN_M = 0.5e-3     # median joint-centre error, noise-free
 MEDIAN_NOISY_M = 3e-3       # median joint-centre error, 1 mm marker noise
+EQUIV_TOL_FACTOR = 3.0      # equivalence metric: coincident joints within 3x the median error
 
 
 def figures():
@@ -65,15 +67,26 @@ def test_fifty_random_figures_noise_free():
 @pytest.mark.slow
 def test_fifty_random_figures_noisy():
     """1 mm noise: the joint-centre median bound (over figures whose topology is right),
-    then the topology target, which does not hold yet: it is reported as xfail with the
-    measured count. The failures are siblings whose joints on the parent lie within a few
-    mm of each other (a three-way junction: all three pairs fit a joint within the noise)."""
-    errs, exact = [], 0
+    then the exact-topology target, which does not hold yet: it is reported as xfail with
+    the measured count, next to the count of solved trees that are kinematically equivalent
+    to the truth (``topology_equivalent``: edges differ only inside a group of sibling
+    joints within 3x the median joint error; a reported number, not the target). Most
+    failures are siblings whose joints on the parent lie within a few mm of each other (a
+    three-way junction: all three pairs fit a joint within the noise; skeleton.junctions
+    picks the hub by a motion prior)."""
+    errs, exact, kept = [], 0, []
     for k, fig, mo in figures():
         noisy = mo.markers + np.random.default_rng(k).normal(0, NOISE_M, mo.markers.shape)
-        ok, e = evaluate(fig, mo, solve_skeleton(noisy, mo.rate_hz, rng=0))
+        res = solve_skeleton(noisy, mo.rate_hz, rng=0)
+        ok, e = evaluate(fig, mo, res)
         exact += ok
         errs += e
+        kept.append((fig, mo, res))
     assert np.median(errs) <= MEDIAN_NOISY_M
+    tol = EQUIV_TOL_FACTOR * float(np.median(errs))
+    equiv = sum(topology_equivalent(f, m, r, tol) for f, m, r in kept)
+    assert equiv >= exact
     if exact < MIN_EXACT_CLEAN:
-        pytest.xfail(f"noisy topology exact on {exact}/{N_FIGURES} < {MIN_EXACT_CLEAN}")
+        pytest.xfail(f"noisy topology exact on {exact}/{N_FIGURES} < {MIN_EXACT_CLEAN} "
+                     f"(kinematically equivalent within {tol * 1e3:.2f} mm: "
+                     f"{equiv}/{N_FIGURES})")

@@ -1,0 +1,130 @@
+"""Junctions: several segments meeting at one point, and which of them is the hub.
+
+When two siblings' joints on their parent (nearly) coincide, the parent and both children
+share one fixed rotation point, so every pair of them fits a joint within the noise and the
+minimum spanning tree's choice among them is arbitrary (the trees are kinematically
+equivalent). ``resolve_junctions`` finds such groups in a tree (adjacent tree edges whose
+joint centres on the shared segment lie within ``tol_m``), and re-links each group as a star
+around its hub: the member that moves least relative to the others (summed RMS relative
+rotation, ``relative_spread``). A joint's rotation is one joint's motion; the rotation
+between two segments hung from the same hub composes two, so it is usually the larger
+(pelvis and thighs, a torso and its limbs). This is a prior, not an identification: on 40
+synthetic three-way junctions (benchmarks/bench_junctions.py: random_tree, 1 mm noise) it
+picked the parent in 37; the alternative prior "the hub's marker centroid is nearest the
+junction" picked it in 31, and their normalised sum in 34. A hub whose star would use an
+edge costing more than ``max_cost`` is not considered. Conventions: docs/conventions.md [arrays], [units].
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["junction_groups", "relative_spread", "resolve_junctions"]
+
+SPREAD_FRAMES = 200
+
+
+def _gap(ca, aa, cb, ab) -> np.ndarray:
+    """(T,) distance between two joints: centres (T, 3); a hinge's (axis (T, 3), else None)
+    centre is anywhere on its axis, so the distance is taken to that line."""
+    d = cb - ca
+    gaps = []
+    for ax in (aa, ab):
+        if ax is not None:
+            gaps.append(np.linalg.norm(d - (d * ax).sum(1, keepdims=True) * ax, axis=1))
+    return np.linalg.norm(d, axis=1) if not gaps else np.fmin.reduce(gaps)
+
+
+def junction_groups(edges, centres: dict, tol_m: float, axes: dict | None = None
+                    ) -> list[set]:
+    """Groups (>= 3 segments) linked by tree edges whose joint centres coincide.
+
+    ``edges``: (S-1, 2) tree edges; ``centres[frozenset(edge)]``: (T, 3) world joint centre
+    of that edge (NaN where unknown); ``axes[frozenset(edge)]``: (T, 3) hinge axis or None.
+    Two edges sharing a segment are merged when the median distance between their joints
+    is below ``tol_m``."""
+    axes = axes or {}
+    edges = [tuple(int(v) for v in e) for e in edges]
+    lab = {e: k for k, e in enumerate(edges)}
+
+    def root(k):
+        while parent[k] != k:
+            k = parent[k]
+        return k
+
+    parent = list(range(len(edges)))
+    for i, e in enumerate(edges):
+        for j in range(i + 1, len(edges)):
+            f = edges[j]
+            if not set(e) & set(f):
+                continue
+            fe, ff = frozenset(e), frozenset(f)
+            d = _gap(centres[fe], axes.get(fe), centres[ff], axes.get(ff))
+            if np.isfinite(d).any() and np.nanmedian(d) < tol_m:
+                parent[root(lab[f])] = root(i)
+    out: dict[int, set] = {}
+    for i, e in enumerate(edges):
+        out.setdefault(root(i), set()).update(e)
+    return [g for g in out.values() if len(g) >= 3]
+
+
+def _frames(traj: np.ndarray, idx, centre: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) world_from_segment rotations of a segment from its markers and the junction
+    centre (a frame even for two markers), relative to the first frame (Kabsch)."""
+    P = np.concatenate([traj[:, np.asarray(idx, int)], centre[:, None]], axis=1)   # (F, n, 3)
+    P = P - P.mean(1, keepdims=True)
+    H = np.einsum("ni,fnj->fij", P[0], P)          # cross-covariance of frame 0 -> frame f
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.ones((len(P), 3))
+    D[:, 2] = d
+    return np.einsum("fji,fj,fkj->fik", Vt, D, U)    # R_f with P_f ~ R_f P_0
+
+
+def relative_spread(traj: np.ndarray, ma, mb, centre: np.ndarray) -> float:
+    """RMS angle (rad) of segment b's rotation relative to segment a about its mean, over
+    time; each segment's frame from its markers and the junction ``centre`` (T, 3)."""
+    T = traj.shape[0]
+    sel = np.linspace(0, T - 1, min(T, SPREAD_FRAMES)).astype(int)
+    ok = sel[~np.isnan(traj[sel][:, np.concatenate([ma, mb])]).any((1, 2))
+             & ~np.isnan(centre[sel]).any(1)]
+    if ok.size < 3:
+        return np.inf
+    Ra, Rb = _frames(traj[ok], ma, centre[ok]), _frames(traj[ok], mb, centre[ok])
+    Rr = np.swapaxes(Ra, 1, 2) @ Rb
+    U, _, Vt = np.linalg.svd(Rr.sum(0))
+    R0 = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt    # chordal mean
+    cos = (np.trace(R0.T @ Rr, axis1=1, axis2=2) - 1) / 2
+    return float(np.sqrt(np.mean(np.arccos(np.clip(cos, -1, 1)) ** 2)))
+
+
+def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.ndarray,
+                      tol_m: float, max_cost: float, axes: dict | None = None,
+                      recost=None) -> np.ndarray:
+    """Tree edges (S-1, 2) with every junction group re-linked as a star around its hub
+    (see the module docstring). A member whose star would use an edge costing more than
+    ``max_cost`` is no candidate hub (a group without candidates is left as it is);
+    ``recost(a, b)``, when given, first re-evaluates such a pair (a quick cost may be an
+    upper bound)."""
+    edges = {frozenset(int(v) for v in e) for e in edges}
+    cost = np.array(cost, float)
+
+    def ok(a, b):
+        if not cost[a, b] <= max_cost and recost is not None:
+            cost[a, b] = cost[b, a] = min(cost[a, b], recost(a, b))
+        return cost[a, b] <= max_cost
+
+    for grp in junction_groups(sorted(tuple(sorted(e)) for e in edges), centres, tol_m,
+                               axes):
+        inner = [e for e in edges if e <= grp]
+        axes = axes or {}
+        ball = [e for e in inner if axes.get(e) is None] or inner   # a hinge's centre is
+        c = np.nanmean(np.stack([centres[e] for e in ball]), axis=0)   # arbitrary on its axis
+        hubs = [h for h in sorted(grp)
+                if all(ok(h, m) for m in grp if m != h)]
+        if not hubs:
+            continue
+        spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
+                               for m in grp if m != h) for h in hubs])
+        hub = hubs[int(np.argmin(spread))]
+        edges = (edges - set(inner)) | {frozenset((hub, m)) for m in grp if m != hub}
+    return np.array(sorted(tuple(sorted(e)) for e in edges), dtype=np.int64).reshape(-1, 2)

@@ -1,0 +1,105 @@
+"""skeleton.junctions and skeleton.topology.tree_from_edges: segments meeting at one point,
+vs hw_sim truth (fast); and the equivalence metric of tests/skeleton/_figures.py."""
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from hw_sim.articulated import animate, random_tree
+from skeleton.junctions import junction_groups, resolve_junctions
+from skeleton.topology import tree_from_edges
+from tests.skeleton._figures import coincident_joint_groups, topology_equivalent
+
+TOL_M = 1e-3
+
+
+def _junction_figure(seed):
+    """A random tree whose first parent with two ball-jointed children gets both children's
+    joints at the same point (a three-way junction). Returns (fig, parent, a, b)."""
+    for s in range(seed, seed + 200):
+        fig = random_tree(8, (2, 4), rng=s)
+        for p in range(fig.n_segments):
+            ch = [c for c in np.flatnonzero(fig.parents == p) if fig.joint_types[c] == "ball"]
+            if len(ch) >= 2:
+                off = np.array(fig.joint_offsets)
+                off[ch[1]] = off[ch[0]]
+                return dataclasses.replace(fig, joint_offsets=off), p, ch[0], ch[1]
+    raise AssertionError("no figure with two ball-jointed siblings")
+
+
+def _truth_centres(fig, mo, edges):
+    out = {}
+    for e in edges:
+        a, b = map(int, e)
+        child = a if fig.parents[a] == b else b
+        out[frozenset((a, b))] = mo.joint_centres[:, child]
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 300, 600, 900])
+def test_junction_relinked_around_parent(seed):
+    """The tree with the child-child edge instead of parent-child is re-linked as the
+    truth: the parent is the hub."""
+    fig, p, a, b = _junction_figure(seed)
+    mo = animate(fig, 600, rng=seed, rom_deg=60.0)
+    members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
+    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
+    wrong = (truth - {frozenset((p, b))}) | {frozenset((a, b))}
+    edges = np.array([sorted(e) for e in wrong])
+    centres = _truth_centres(fig, mo, truth | wrong)
+    centres[frozenset((a, b))] = mo.joint_centres[:, a]
+    assert junction_groups(edges, centres, TOL_M) == [{p, a, b}]
+    cost = np.zeros((fig.n_segments,) * 2)
+    out = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=1.0)
+    assert {frozenset(map(int, e)) for e in out} == truth
+
+
+def test_junction_needs_coincident_joints():
+    """Adjacent tree joints farther apart than the tolerance form no group."""
+    fig = random_tree(8, (2, 4), rng=5)
+    mo = animate(fig, 100, rng=5)
+    edges = np.array([(int(fig.parents[s]), s) for s in range(1, fig.n_segments)])
+    centres = _truth_centres(fig, mo, [tuple(e) for e in edges])
+    sib = min((np.linalg.norm(fig.joint_offsets[i] - fig.joint_offsets[j]), i, j)
+              for i in range(1, fig.n_segments) for j in range(i + 1, fig.n_segments)
+              if fig.parents[i] == fig.parents[j])
+    assert junction_groups(edges, centres, 0.5 * sib[0]) == []
+    assert {sib[1], sib[2]} <= junction_groups(edges, centres, 1.01 * sib[0])[0]
+
+
+def test_tree_from_edges():
+    top = tree_from_edges(4, [(0, 1), (1, 2), (1, 3)])
+    assert top.root == 1 and top.parents.tolist() == [1, -1, 1, 1]
+    with pytest.raises(ValueError, match="edges"):
+        tree_from_edges(4, [(0, 1), (1, 2), (0, 2)])
+    with pytest.raises(ValueError, match="edges"):
+        tree_from_edges(4, [(0, 1), (1, 2)])
+
+
+def test_topology_equivalent_metric():
+    """A swap inside a junction is equivalent (not exact); a swap elsewhere is neither."""
+    fig, p, a, b = _junction_figure(0)
+    mo = animate(fig, 50, rng=0)
+    S = fig.n_segments
+    assert {p, a, b} in coincident_joint_groups(fig, TOL_M)
+
+    def result(parents):
+        joints = [None if parents[s] < 0 else SimpleNamespace(world=mo.joint_centres[:, s])
+                  for s in range(S)]
+        return SimpleNamespace(labels=np.array(fig.marker_segment), n_segments=S,
+                               parents=np.array(parents), joints=joints)
+
+    par = np.array(fig.parents)
+    assert topology_equivalent(fig, mo, result(par), TOL_M)
+    swapped = par.copy()
+    swapped[b] = a                      # b hangs from its sibling at the same point
+    assert topology_equivalent(fig, mo, result(swapped), TOL_M)
+    leaf = next(s for s in range(1, S) if s not in (a, b) and s not in par
+                and fig.parents[s] != p)
+    other = next(s for s in range(S) if s not in (leaf, par[leaf]))
+    wrong = par.copy()
+    wrong[leaf] = other
+    assert not topology_equivalent(fig, mo, result(wrong), TOL_M)
