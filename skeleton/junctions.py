@@ -12,7 +12,8 @@ between two segments hung from the same hub composes two, so it is usually the l
 synthetic three-way junctions (benchmarks/bench_junctions.py: random_tree, 1 mm noise) it
 picked the parent in 37; the alternative prior "the hub's marker centroid is nearest the
 junction" picked it in 31, and their normalised sum in 34. A hub whose star would use an
-edge costing more than ``max_cost`` is not considered. Conventions: docs/conventions.md [arrays], [units].
+edge costing more than ``max_cost`` is not considered.
+Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
 
