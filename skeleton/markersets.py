@@ -14,7 +14,12 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    Where the thesis aligns the whole body, the alignment here uses the ``neighbours``
    fragments that are most rigid with respect to both fragments (smallest larger sd of
    distance over either's life: a short fragment finds everything rigid), which makes the
-   alignment exact on an articulated figure;
+   alignment exact on an articulated figure. An alignment counts at least
+   ``partner_sd_weight`` (0.5) times the larger sd of its least rigid partner: partners
+   across a joint leave the pose free, and over a long gap a wrong partner could otherwise
+   fit within a few mm (benchmarks/bench_skeleton_outputs.py figures 0-39, 1 mm noise:
+   33/40 merged exactly against 32/40 without this floor, 19/22 against 18/22 of the
+   physical ones);
 3. clustering: constrained single linkage: pairs are merged in order of distance while the
    distance is below ``max_distance_m``, never merging clusters seen in the same frame
    (the cannot-link constraint a spectral clustering cannot guarantee), and never below the
@@ -129,7 +134,9 @@ def _first_seen(X, f) -> int:
     return int(np.flatnonzero(~np.isnan(X[:, f, 0]))[0])
 
 
-def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours) -> MarkerSets:
+def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
+                partner_sd_weight=0.5) -> MarkerSets:
+    """One merge: drop short fragments, pose-aligned distances, constrained linkage."""
     T, F = X.shape[:2]
     vis = ~np.isnan(X).any(2)
     keep = np.flatnonzero(vis.sum(0) >= min_frames)
@@ -185,7 +192,10 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours) -
                 dst = Xk[a[sel, None], rank[cols]]
                 R, t = _kabsch_batch(src, dst)
                 mj = np.einsum("bij,bj->bi", R, Xk[b[sel], j]) + t
-                best = min(best, float(np.linalg.norm(mj - Xk[a[sel], i], axis=1).min()))
+                # an alignment is only as good as its least rigid partner
+                loose = both_sd[rank[cols]].max(1) * partner_sd_weight
+                best = min(best, float(np.maximum(np.linalg.norm(mj - Xk[a[sel], i], axis=1),
+                                                  loose).min()))
             Dk[i, j] = best
     Dk = np.fmin(Dk, Dk.T)
     D[np.ix_(keep, keep)] = Dk

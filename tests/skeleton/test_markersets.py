@@ -88,3 +88,17 @@ def test_bad_input():
         merge_fragments(np.zeros((10, 3)))
     with pytest.raises(ValueError, match="neighbours=2"):
         merge_fragments(np.zeros((10, 4, 3)), neighbours=2)
+
+
+def test_long_gaps_do_not_pair_markers_across_segments():
+    """Benchmark figure 18 (bench_skeleton_outputs.py): gaps of up to 0.4 s once let an
+    alignment on partners across a joint pair a marker with one on another segment (6 mm)."""
+    k = 18
+    g = np.random.default_rng(1000 + k)
+    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=1000 + k)
+    assert _spacing(fig) >= MIN_SPACING_M
+    mo = animate(fig, 400, rng=1000 + k, rom_deg=60.0)
+    X, owner = fragment(mo.markers + g.normal(0, NOISE_M, mo.markers.shape), k,
+                        n_gaps=(1, 4), gap_frames=(3, 40))
+    ms = merge_fragments(X)
+    _check(fig, X, owner, ms, mo.markers)
