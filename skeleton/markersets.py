@@ -17,13 +17,20 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    alignment exact on an articulated figure. An alignment counts at least
    ``partner_sd_weight`` (0.5) times the larger sd of its least rigid partner: partners
    across a joint leave the pose free, and over a long gap a wrong partner could otherwise
-   fit within a few mm (benchmarks/bench_skeleton_outputs.py figures 0-39, 1 mm noise:
-   33/40 merged exactly against 32/40 without this floor, 19/22 against 18/22 of the
-   physical ones);
-3. clustering: constrained single linkage: pairs are merged in order of distance while the
-   distance is below ``max_distance_m``, never merging clusters seen in the same frame
+   fit within a few mm;
+3. clustering: constrained single linkage: pairs are merged in order of distance plus
+   ``gap_weight_m`` (0.1 mm) per frame of gap between them (the longer the gap, the less a
+   few mm of residual proves; the order only, the threshold stays on the distance) while
+   the distance is below ``max_distance_m``, never merging clusters seen in the same frame
    (the cannot-link constraint a spectral clustering cannot guarantee), and never below the
    thesis' lower bound on the number of markers (the most fragments seen in one frame).
+
+The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
+(1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on
+which the weights were chosen) 32/40 merged exactly without either, 33/40 with the floor,
+34/40 with both; figures 40-79 (held out) 29/40, 32/40, 33/40 (physical figures, markers
+>= 20 mm apart: 17/22, 17/22, 19/22). Gap weights 0.05 and 0.15 mm per frame did worse on
+figures 0-39 (33/40 and 32/40).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -134,8 +141,16 @@ def _first_seen(X, f) -> int:
     return int(np.flatnonzero(~np.isnan(X[:, f, 0]))[0])
 
 
+def _gap(fa: np.ndarray, fb: np.ndarray) -> int:
+    """Fewest frames between a frame of sorted ``fa`` and one of sorted ``fb``."""
+    k = np.searchsorted(fb, fa)
+    after = np.abs(fb[np.minimum(k, fb.size - 1)] - fa)
+    before = np.abs(fb[np.maximum(k - 1, 0)] - fa)
+    return int(np.minimum(after, before).min())
+
+
 def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
-                partner_sd_weight=0.5) -> MarkerSets:
+                partner_sd_weight=0.5, gap_weight_m=1e-4) -> MarkerSets:
     """One merge: drop short fragments, pose-aligned distances, constrained linkage."""
     T, F = X.shape[:2]
     vis = ~np.isnan(X).any(2)
@@ -205,7 +220,9 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
     seen = {c: vk[:, c].copy() for c in range(K)}
     iu, ju = np.triu_indices(K, 1)
     cand = np.flatnonzero(Dk[iu, ju] <= max_distance_m)
-    for e in cand[np.argsort(Dk[iu[cand], ju[cand]], kind="stable")]:
+    gap = np.array([_gap(frames[iu[e]], frames[ju[e]]) for e in cand], np.float64)
+    key = Dk[iu[cand], ju[cand]] + gap_weight_m * gap
+    for e in cand[np.argsort(key, kind="stable")]:
         if len(members) <= lower:
             break
         ci, cj = cluster[iu[e]], cluster[ju[e]]

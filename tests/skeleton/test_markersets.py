@@ -90,10 +90,11 @@ def test_bad_input():
         merge_fragments(np.zeros((10, 4, 3)), neighbours=2)
 
 
-def test_long_gaps_do_not_pair_markers_across_segments():
-    """Benchmark figure 18 (bench_skeleton_outputs.py): gaps of up to 0.4 s once let an
-    alignment on partners across a joint pair a marker with one on another segment (6 mm)."""
-    k = 18
+@pytest.mark.parametrize("k", [15, 18])
+def test_long_gaps_do_not_pair_markers_across_segments(k):
+    """Benchmark figures 15 and 18 (bench_skeleton_outputs.py): gaps of up to 1 s once let
+    an alignment on partners across a joint pair a marker with one on another segment
+    (4-6 mm)."""
     g = np.random.default_rng(1000 + k)
     fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=1000 + k)
     assert _spacing(fig) >= MIN_SPACING_M
