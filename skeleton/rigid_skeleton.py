@@ -18,6 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import breadth_first_order, shortest_path
 
 from skeleton.rigid import kabsch
 
@@ -141,42 +143,26 @@ def _fit_root(parents: np.ndarray, root: int, n_markers: np.ndarray) -> int:
     return int(cand[np.lexsort((cand, -n_markers[cand], hops[cand]))[0]])
 
 
-def _hops(parents: np.ndarray, start: int) -> np.ndarray:
+def _tree_graph(parents: np.ndarray) -> csr_matrix:
+    """Undirected adjacency of the tree given by ``parents`` (-1 = root)."""
+    child = np.flatnonzero(parents >= 0)
     S = parents.size
-    adj = [set() for _ in range(S)]
-    for s, p in enumerate(parents):
-        if p >= 0:
-            adj[s].add(int(p))
-            adj[int(p)].add(s)
-    hops = np.full(S, -1)
-    hops[start] = 0
-    queue = [start]
-    for a in queue:
-        for b in sorted(adj[a]):
-            if hops[b] < 0:
-                hops[b] = hops[a] + 1
-                queue.append(b)
-    return hops
+    return csr_matrix((np.ones(child.size), (child, parents[child])), shape=(S, S))
+
+
+def _hops(parents: np.ndarray, start: int) -> np.ndarray:
+    """Joints between ``start`` and every segment (-1 where unreachable)."""
+    d = shortest_path(_tree_graph(parents), unweighted=True, directed=False, indices=start)
+    return np.where(np.isfinite(d), d, -1).astype(np.int64)
 
 
 def _reroot(parents: np.ndarray, root: int) -> np.ndarray:
     """Parents of the same tree hung from ``root``."""
-    S = parents.size
-    adj = [set() for _ in range(S)]
-    for s, p in enumerate(parents):
-        if p >= 0:
-            adj[s].add(int(p))
-            adj[int(p)].add(s)
-    new = np.full(S, -2, np.int64)
-    new[root] = -1
-    queue = [root]
-    for a in queue:
-        for b in sorted(adj[a]):
-            if new[b] == -2:
-                new[b] = a
-                queue.append(b)
-    if (new == -2).any():
+    order, pred = breadth_first_order(_tree_graph(parents), root, directed=False)
+    if order.size != parents.size:
         raise ValueError(f"parents={parents.tolist()} is not one tree")
+    new = pred.astype(np.int64)
+    new[root] = -1
     return new
 
 
