@@ -36,6 +36,22 @@ def joint_errors(fig, motion, parents, joint_centres, segmap):
     return np.stack(out, 1)
 
 
+def solver_joint_errors(fig, motion, res, segmap) -> np.ndarray:
+    """Per true joint, the median distance (m) between the solver's joint (``res.joints`` of
+    the estimated child, or of the parent when the estimated tree is rooted the other way)
+    and the true centre; hinges perpendicular to the axis. The topology must be right."""
+    errs = []
+    for s in range(1, fig.n_segments):
+        e, ep = segmap[s], segmap[fig.parents[s]]
+        j = res.joints[e] if res.parents[e] == ep else res.joints[ep]
+        d = j.world - motion.joint_centres[:, s]
+        if fig.joint_types[s] == "hinge":
+            ax = np.einsum("tij,j->ti", motion.world_from_segment_R[:, s], fig.hinge_axes[s])
+            d = d - (d * ax).sum(1, keepdims=True) * ax
+        errs.append(np.nanmedian(np.linalg.norm(d, axis=1)))
+    return np.array(errs)
+
+
 def fragment(markers, rng, n_gaps=(1, 4), gap_frames=(3, 40), n_ghosts=5):
     """Cut every marker trajectory at random occlusions into fragments with new ids (as a
     tracker does), add short ghost fragments, shuffle. Returns (T, F, 3) and owner (F,)

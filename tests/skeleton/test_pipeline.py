@@ -7,6 +7,7 @@ import pytest
 from hw_sim.articulated import animate, random_tree
 from skeleton.pipeline import solve_skeleton
 from skeleton.rigid import kabsch
+from tests.skeleton._figures import segment_map, solver_joint_errors
 
 EXACT_JOINT_M = 1e-6       # noise-free joint centre (target 0.5 mm; measured ~1e-12)
 NOISY_JOINT_M = 3e-3       # 1 mm marker noise (median)
@@ -15,26 +16,7 @@ NOISE_M = 1e-3
 
 def _truth_map(fig, res):
     """truth segment -> estimated segment (None if the clustering split/merged it)."""
-    m = []
-    for s in range(fig.n_segments):
-        lab = set(res.labels[fig.marker_segment == s].tolist())
-        if len(lab) != 1:
-            return None
-        m.append(lab.pop())
-    return np.array(m) if len(set(m)) == fig.n_segments == res.n_segments else None
-
-
-def _joint_errors(fig, mo, res, segmap):
-    errs = []
-    for s in range(1, fig.n_segments):
-        e, ep = segmap[s], segmap[fig.parents[s]]
-        j = res.joints[e] if res.parents[e] == ep else res.joints[ep]
-        d = j.world - mo.joint_centres[:, s]
-        if fig.joint_types[s] == "hinge":
-            ax = np.einsum("tij,j->ti", mo.world_from_segment_R[:, s], fig.hinge_axes[s])
-            d = d - (d * ax).sum(1, keepdims=True) * ax
-        errs.append(np.nanmedian(np.linalg.norm(d, axis=1)))
-    return np.array(errs)
+    return segment_map(fig, res.labels) if res.n_segments == fig.n_segments else None
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
@@ -49,7 +31,7 @@ def test_random_tree_topology_and_joints(seed):
     est = {tuple(sorted((s, int(res.parents[s])))) for s in range(res.n_segments)
            if res.parents[s] >= 0}
     assert est == truth
-    assert _joint_errors(fig, mo, res, segmap).max() < EXACT_JOINT_M
+    assert solver_joint_errors(fig, mo, res, segmap).max() < EXACT_JOINT_M
 
 
 def test_two_to_four_markers_per_segment():
@@ -73,7 +55,7 @@ def test_noisy_joint_centres():
     res = solve_skeleton(noisy, mo.rate_hz, n_segments=fig.n_segments, rng=0)
     segmap = _truth_map(fig, res)
     assert segmap is not None
-    assert np.median(_joint_errors(fig, mo, res, segmap)) < NOISY_JOINT_M
+    assert np.median(solver_joint_errors(fig, mo, res, segmap)) < NOISY_JOINT_M
 
 
 def test_kabsch_proper_rotation():

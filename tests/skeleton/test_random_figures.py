@@ -10,7 +10,7 @@ import pytest
 
 from hw_sim.articulated import animate, random_tree
 from skeleton.pipeline import solve_skeleton
-from tests.skeleton._figures import topology_equivalent
+from tests.skeleton._figures import segment_map, solver_joint_errors, topology_equivalent
 
 N_FIGURES = 50
 N_FRAMES = 600
@@ -30,27 +30,15 @@ def figures():
 
 def evaluate(fig, mo, res):
     """(topology exactly right, per-joint median centre errors m; hinges perpendicular)."""
-    segmap = []
-    for s in range(fig.n_segments):
-        lab = set(res.labels[fig.marker_segment == s].tolist())
-        segmap.append(lab.pop() if len(lab) == 1 else -1)
-    if -1 in segmap or len(set(segmap)) != fig.n_segments or res.n_segments != fig.n_segments:
+    segmap = segment_map(fig, res.labels)
+    if segmap is None or res.n_segments != fig.n_segments:
         return False, []
     truth = {tuple(sorted((segmap[s], segmap[fig.parents[s]]))) for s in range(1, fig.n_segments)}
     est = {tuple(sorted((s, int(res.parents[s])))) for s in range(res.n_segments)
            if res.parents[s] >= 0}
     if est != truth:
         return False, []
-    errs = []
-    for s in range(1, fig.n_segments):
-        e, ep = segmap[s], segmap[fig.parents[s]]
-        j = res.joints[e] if res.parents[e] == ep else res.joints[ep]
-        d = j.world - mo.joint_centres[:, s]
-        if fig.joint_types[s] == "hinge":
-            ax = np.einsum("tij,j->ti", mo.world_from_segment_R[:, s], fig.hinge_axes[s])
-            d = d - (d * ax).sum(1, keepdims=True) * ax
-        errs.append(np.nanmedian(np.linalg.norm(d, axis=1)))
-    return True, errs
+    return True, list(solver_joint_errors(fig, mo, res, segmap))
 
 
 @pytest.mark.slow
