@@ -18,6 +18,7 @@ Conventions: docs/conventions.md [arrays], [errors].
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -27,6 +28,7 @@ from skeleton.rigid import kabsch
 __all__ = ["JointFit", "fit_joint", "HINGE_RATIO"]
 
 HINGE_RATIO = 0.05
+HINGE_Z = 4.0     # out-of-plane motion below 2 sd of its propagated noise: a hinge
 MIN_FRAMES = 10
 
 
@@ -60,8 +62,14 @@ def _fail(T, reason):
 
 
 def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
-              ref: int | None = None) -> JointFit:
-    """``ref`` forces the reference segment (0: a, 1: b); default: the one with more markers."""
+              ref: int | None = None, noise_m: float | None = None,
+              radii: np.ndarray | None = None) -> JointFit:
+    """``ref`` forces the reference segment (0: a, 1: b); default: the one with more markers.
+    ``noise_m`` (two 2-marker segments only): the cost a true joint scores on this data
+    (``joint_cost``'s units); the closed-form start is kept when it scores within 1.2x that,
+    else (or without it) the multi-start search runs. ``radii`` (two 2-marker segments
+    only): marker-joint distances (4,) found by a search on similar data (``joint_cost``'s
+    ``detail``), a further start; given, they replace the multi-start search."""
     traj = np.asarray(traj, np.float64)
     T = traj.shape[0]
     a, b = np.asarray(markers_a, int), np.asarray(markers_b, int)
@@ -71,7 +79,7 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
         raise ValueError(f"ref={ref!r}, expected 0, 1 or None")
     r_idx, c_idx = (a, b) if ref == 0 else (b, a)
     if r_idx.size < 3:
-        return _fit_world(traj, np.concatenate([a, b]))
+        return _fit_world(traj, np.concatenate([a, b]), noise_m, radii)
     full = ~np.isnan(traj[:, r_idx]).any(axis=(1, 2))
     if full.sum() < MIN_FRAMES:
         return _fail(T, f"only {int(full.sum())} frames see the reference segment")
@@ -139,6 +147,16 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
                           x_scale="jac").x
     c = p[:3]
     axis = np.full(3, np.nan)
+    if not hinge and len(pts) - 3 - len(mk) > 0:
+        # Statistical hinge test: the motion out of the best plane (smallest singular value
+        # of the algebraic system) against what the propagated noise alone would put there
+        # (rows 2 (x - mean): variance 4 sigma^2 w_n^2, w_n as wsq for the plane normal;
+        # sigma from this fit's own normalised residual). A small or cramped reference
+        # frame can put far more noise out of the plane than HINGE_RATIO allows.
+        sigma = np.sqrt((fun(p) ** 2).sum() / (len(pts) - 3 - len(mk)))
+        ln = np.cross(lever, Vt[2])
+        wn2 = 1 + 1 / r_idx.size + np.einsum("ni,ij,nj->n", ln, Pinv, ln)
+        hinge = bool(s[-1] ** 2 < HINGE_Z * 4 * sigma**2 * wn2.sum())
     dof = len(pts) - 3 - len(mk) + (1 if hinge else 0)
     cost = float(np.sqrt((fun(p) ** 2).sum() / dof)) if dof > 0 else np.inf
     res = float(np.sqrt(np.mean((fun(p) * wsq) ** 2)))
@@ -162,7 +180,8 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
 FRAME_ITERS = 8
 
 
-def _fit_world(traj: np.ndarray, idx: np.ndarray) -> JointFit:
+def _fit_world(traj: np.ndarray, idx: np.ndarray, noise_m: float | None = None,
+               radii: np.ndarray | None = None) -> JointFit:
     """Two-marker segments: a per-frame centre ``c_t`` at constant distances ``r_m`` from
     every marker of both segments (the thesis' cost in world coordinates), ``_world_solve``."""
     T = traj.shape[0]
@@ -173,7 +192,21 @@ def _fit_world(traj: np.ndarray, idx: np.ndarray) -> JointFit:
         return _fail(T, f"only {full.size} frames see both segments")
     X = traj[full][:, idx]                                  # (F, N, 3)
     sub = np.linspace(0, full.size - 1, min(full.size, COST_FRAMES)).astype(int)
-    cs, r, _ = _world_solve(X[sub], idx.size // 2)
+    Xs = X[sub]
+    dof = Xs.shape[0] * (idx.size - 3) - idx.size
+    cs, r, ssr = _world_solve(Xs, idx.size // 2, multistart=False, iters=WORLD_ITERS)
+    if radii is not None:   # the centres at those distances (closed form), refined
+        k = radii[1:] ** 2 - radii[0] ** 2
+        M = 2 * (Xs[:, 1:4] - Xs[:, :1])
+        y = (Xs[:, 1:4] ** 2).sum(2) - (Xs[:, 0] ** 2).sum(1)[:, None]
+        c0 = np.einsum("fij,fj->fi", np.linalg.pinv(M), y - k)
+        cs2, r2, ssr2 = _world_lm(Xs, c0, np.array(radii, float), WORLD_ITERS)
+        if _plausible(r2[None])[0] and (ssr2 < ssr or not _plausible(r[None])[0]):
+            cs, r, ssr = cs2, r2, ssr2
+    elif noise_m is None or dof <= 0 or not np.sqrt(ssr / dof) <= 1.2 * noise_m:
+        cs2, r2, ssr2 = _world_solve(Xs, idx.size // 2)
+        if ssr2 < ssr or not _plausible(r[None])[0]:
+            cs, r = cs2, r2
     c = np.stack([np.interp(np.arange(full.size), sub, cs[:, k]) for k in range(3)], 1)
     def frame_ssr(c):
         return ((np.linalg.norm(X - c[:, None], axis=2) - r) ** 2).sum(1)
@@ -203,7 +236,7 @@ COST_FRAMES = 200        # frames sampled (evenly) for the joint cost of one seg
 COST_ITERS = 60
 SCREEN_FRAMES = 30
 SCREEN_ITERS = 25
-REFINE_STARTS = 2
+REFINE_STARTS = 3
 # starts along each 2-marker line, in units of marker 0 -> marker 1
 LINE_STARTS = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5)
 WORLD_ITERS = 100
@@ -212,6 +245,18 @@ INIT_FRAMES = 60         # frames for the closed-form 2+2 start
 MAX_JOINT_MARKER_M = 1.0   # a joint farther than this from a marker of its segments: rejected
 LM_RTOL = 1e-7           # stop: relative decrease of the sum of squares
 LM_ATOL_M = 1e-10        # stop: rms residual
+
+
+def _inv3_sym(A: np.ndarray) -> np.ndarray:
+    """Inverse of symmetric 3x3 matrices (..., 3, 3) by cofactors (many small matrices:
+    several times faster than a batched LAPACK call)."""
+    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
+    d, e, f = A[..., 1, 1], A[..., 1, 2], A[..., 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    out = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], -1)
+    return (out / det[..., None]).reshape(A.shape)
 
 
 def _world_lm(X: np.ndarray, c: np.ndarray, r: np.ndarray, iters: int = COST_ITERS):
@@ -227,7 +272,7 @@ def _world_lm(X: np.ndarray, c: np.ndarray, r: np.ndarray, iters: int = COST_ITE
 
     def resid(c, r):
         D = X - c[:, :, None]
-        d = np.linalg.norm(D, axis=3)
+        d = np.sqrt(np.einsum("bfni,bfni->bfn", D, D))
         return D, d, d - r[:, None]
 
     D, d, e = resid(c, r)
@@ -242,7 +287,7 @@ def _world_lm(X: np.ndarray, c: np.ndarray, r: np.ndarray, iters: int = COST_ITE
         gc = -(ut @ e[..., None])[..., 0]                        # J_c^T e (B, F, 3)
         gr = -e.sum(1)                                           # J_r^T e (B, N)
         Ad = A + lam[:, None, None, None] * (A * eye).sum(3)[..., None] * eye + 1e-12 * eye
-        Ainv = np.linalg.inv(Ad)
+        Ainv = _inv3_sym(Ad)
         AiB = Ainv @ ut                                          # (B, F, 3, N)
         Sm = ((1 + lam) * F)[:, None, None] * np.eye(N) - (u @ AiB).sum(1)
         Aig = (Ainv @ gc[..., None])[..., 0]                     # (B, F, 3)
@@ -351,16 +396,46 @@ def _plausible(r: np.ndarray) -> np.ndarray:
     return (r > 0).all(1) & (r < MAX_JOINT_MARKER_M).all(1)
 
 
-def _world_solve(X: np.ndarray, na: int, multistart: bool = True):
+CIRCLE_AXIAL = (-0.5, 0.5, 1.5)      # along the 2-marker line, marker 0 -> 1 = 1
+CIRCLE_RADII_M = (0.05, 0.10)        # off that line (markers sit on the skin)
+CIRCLE_ANGLES_DEG = (0, 90, 180, -90)   # about it, from the other segment's markers
+
+
+def _circle_starts(X: np.ndarray, na: int) -> np.ndarray:
+    """(K, F, 3) start centres off the marker lines. A point at constant distances from a
+    segment's two markers lies on a circle about their line (its angle about the line is
+    the one thing two markers cannot tell); the joint sits off the line, inside the body.
+    For each segment: circles at ``CIRCLE_AXIAL`` x ``CIRCLE_RADII_M``, the point on each
+    at ``CIRCLE_ANGLES_DEG`` from the direction of the other segment's markers."""
+    out = []
+    for o, q in ((0, na), (na, 0)):
+        a1, a2 = X[:, o], X[:, o + 1]
+        L = np.maximum(np.linalg.norm(a2 - a1, axis=1, keepdims=True), 1e-12)
+        u = (a2 - a1) / L
+        other = X[:, q:q + 2].mean(1)
+        for s in CIRCLE_AXIAL:
+            base = a1 + s * L * u
+            w = other - base
+            w = w - (w * u).sum(1, keepdims=True) * u
+            w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-12)
+            v = np.cross(u, w)
+            for rho in CIRCLE_RADII_M:
+                for ang in np.deg2rad(CIRCLE_ANGLES_DEG):
+                    out.append(base + rho * (np.cos(ang) * w + np.sin(ang) * v))
+    return np.stack(out)
+
+
+def _world_solve(X: np.ndarray, na: int, multistart: bool = True, iters: int = QUICK_ITERS):
     """World-frame joint fit for two 2-marker segments, X (F, 4, 3) with the first ``na`` = 2
     markers on one segment: (c (F, 3), r (4,), ssr). ``multistart=False``: only the closed-
-    form start (fast; may stop in a local minimum when the data is noisy)."""
+    form start (fast; may stop in a local minimum when the data is noisy), ``iters``
+    Levenberg-Marquardt iterations from it."""
     F = X.shape[0]
     if not multistart:
         lin = _four_marker_init(X)
         if lin is not None:
             c, r, ssr = _world_lm(X, lin, np.linalg.norm(X - lin[:, None], axis=2).mean(0),
-                                  QUICK_ITERS)
+                                  iters)
             if _plausible(r[None])[0]:
                 return c, r, ssr
     # two 2-marker segments: the world-frame cost is very non-convex (local minima 10-20 cm
@@ -370,15 +445,15 @@ def _world_solve(X: np.ndarray, na: int, multistart: bool = True):
     starts = [X[:, o][:, None] + lam[None, :, None] * (X[:, o + 1] - X[:, o])[:, None]
               for o in (0, na)]
     starts = np.concatenate(starts, axis=1).transpose(1, 0, 2)          # (K, F, 3)
-    lin = _four_marker_init(X, extra_starts=starts)
-    if lin is not None:
-        starts = np.concatenate([lin[None], starts])
+    lin = _four_marker_init(X)
+    sc = starts
+    if multistart:   # not for a failed quick start: those pairs are many and mostly false
+        sc = np.concatenate([starts, _circle_starts(X, na)])
     few = np.linspace(0, F - 1, min(F, SCREEN_FRAMES)).astype(int)
-    sc = starts[1:] if lin is not None else starts
     Xf = np.broadcast_to(X[few], (len(sc),) + X[few].shape)
     r0 = np.linalg.norm(Xf - sc[:, few][:, :, None], axis=3).mean(1)
     c, r, ssr = _world_lm(Xf, sc[:, few], r0, SCREEN_ITERS)
-    order = np.argsort(ssr)[:REFINE_STARTS]
+    order = np.argsort(np.where(_plausible(r), ssr, np.inf + ssr))[:REFINE_STARTS]
     # the screened centres, interpolated to every frame (smooth motion)
     cands = [np.stack([np.interp(np.arange(F), few, c[o][:, k]) for k in range(3)], 1)
              for o in order]
@@ -386,13 +461,24 @@ def _world_solve(X: np.ndarray, na: int, multistart: bool = True):
     if lin is not None:
         cands.insert(0, lin)
         rads.insert(0, np.linalg.norm(X - lin[:, None], axis=2).mean(0))
-    cb, rb, sb = _world_lm(np.broadcast_to(X, (len(cands),) + X.shape), np.array(cands),
-                           np.array(rads), WORLD_ITERS)
+    # refine them on a third of the frames, then the best on all
+    mid = np.arange(0, F, 3)
+    cb, rb, sb = _world_lm(np.broadcast_to(X[mid], (len(cands),) + X[mid].shape),
+                           np.array(cands)[:, mid], np.array(rads), WORLD_ITERS)
     o = int(np.argmin(np.where(_plausible(rb), sb, np.inf + sb)))
-    return cb[o], rb[o], float(sb[o])
+    c0 = np.stack([np.interp(np.arange(F), mid, cb[o][:, k]) for k in range(3)], 1)
+    c, r, ssr = _world_lm(X, c0, rb[o], WORLD_ITERS)
+    return c, r, float(ssr)
 
 
-def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True) -> float:
+class PairCost(NamedTuple):
+    cost: float
+    hinge: bool
+    radii: np.ndarray | None
+
+
+def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True,
+               detail: bool = False):
     """Topology cost of a candidate joint between two segments, normalised so that a true
     joint scores the marker noise sd (m) whatever the marker layout; a false pair adds its
     misfit. inf if the pair cannot be fitted.
@@ -407,7 +493,10 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True) 
       closed form of ``_four_marker_init``; ``multistart`` adds starts along both marker
       lines (screened on a few frames), for data where the closed form is too noisy.
 
-    ``COST_FRAMES`` frames are used, evenly spaced over those seeing both segments."""
+    ``COST_FRAMES`` frames are used, evenly spaced over those seeing both segments.
+    ``detail``: returns ``PairCost`` (cost, hinge: True when every reference frame's fit is
+    a hinge (``fit_joint``; never for two 2-marker segments), radii: the 2+2 fit's marker-
+    joint distances (4,) or None)."""
     traj = np.asarray(traj, np.float64)
     a, b = np.asarray(markers_a, int), np.asarray(markers_b, int)
     idx = np.concatenate([a, b])
@@ -416,12 +505,14 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True) 
     N = idx.size
     dof = F * N - 3 * F - N
     if N < 4 or full.size < MIN_FRAMES or dof <= 0:
-        return np.inf
+        return PairCost(np.inf, False, None) if detail else np.inf
     sel = full[np.linspace(0, full.size - 1, F).astype(int)]
     X = traj[sel][:, idx]
     if max(a.size, b.size) >= 3:
         refs = [k for k, m in enumerate((a, b)) if m.size >= 3]
-        costs = [fit_joint(traj[sel], a, b, refine=True, ref=k).cost_m for k in refs]
-        return float(np.mean(costs))
-    _, _, ssr = _world_solve(X, a.size, multistart)
-    return float(np.sqrt(ssr / dof))
+        fits = [fit_joint(traj[sel], a, b, refine=True, ref=k) for k in refs]
+        cost = float(np.mean([f.cost_m for f in fits]))
+        return PairCost(cost, all(f.hinge for f in fits), None) if detail else cost
+    _, r, ssr = _world_solve(X, a.size, multistart)
+    cost = float(np.sqrt(ssr / dof))
+    return PairCost(cost, False, r) if detail else cost

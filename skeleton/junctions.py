@@ -100,12 +100,16 @@ def relative_spread(traj: np.ndarray, ma, mb, centre: np.ndarray) -> float:
 
 def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.ndarray,
                       tol_m: float, max_cost: float, axes: dict | None = None,
-                      recost=None) -> np.ndarray:
+                      recost=None, is_hinge=None) -> np.ndarray:
     """Tree edges (S-1, 2) with every junction group re-linked as a star around its hub
     (see the module docstring). A member whose star would use an edge costing more than
     ``max_cost`` is no candidate hub (a group without candidates is left as it is);
     ``recost(a, b)``, when given, first re-evaluates such a pair (a quick cost may be an
-    upper bound)."""
+    upper bound). ``is_hinge(a, b)``, when given, says whether the pair's relative motion
+    is a rotation about one fixed axis: that is evidence, not a prior (the rotation between
+    two segments hung from one hub composes two joints' rotations, which is a one-axis
+    rotation only when both are hinges about one axis), so the hubs whose star has the most
+    hinge edges are kept before the relative-rotation prior chooses among them."""
     edges = {frozenset(int(v) for v in e) for e in edges}
     cost = np.array(cost, float)
 
@@ -124,6 +128,9 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
                 if all(ok(h, m) for m in grp if m != h)]
         if not hubs:
             continue
+        if is_hinge is not None:
+            n_hinge = [sum(bool(is_hinge(h, m)) for m in grp if m != h) for h in hubs]
+            hubs = [h for h, n in zip(hubs, n_hinge) if n == max(n_hinge)]
         spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
                                for m in grp if m != h) for h in hubs])
         hub = hubs[int(np.argmin(spread))]

@@ -26,7 +26,9 @@ __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
 COST_CUTOFF_HZ = 6.0   # low-pass for the topology costs (biomechanics' usual 6 Hz)
 RECHECK = 10.0         # 2+2 pairs re-searched when their quick cost is below RECHECK x ...
 RECHECK_MIN_M = 1e-5   # ... the median tree-edge cost (or this)
+PRUNE = 0.9            # ... and the tree path between them has an edge above this x it
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
+HINGE_SURE = 1.5       # hinge pairs costing at most this x the median tree-edge cost: sure
 JUNCTION_K = 3.0       # tree joints closer than this x the within-segment distance sd: one
 JUNCTION_COST = 1.5    # junction (skeleton.junctions), re-linked with edges costing at most
                        # this x the largest tree-edge cost
@@ -57,6 +59,23 @@ def lowpass(traj: np.ndarray, rate_hz: float, cutoff_hz: float = COST_CUTOFF_HZ,
                 if trim and e > 0:
                     out[a:a + e, m] = out[b - e:b, m] = np.nan
     return out
+
+
+def _path_max(top, cost: np.ndarray, i: int, j: int) -> float:
+    """The largest cost among the edges of tree ``top`` on the path between i and j."""
+    worst = 0.0
+    up = {int(i): 0.0}             # worst edge from i up to each ancestor
+    a = int(i)
+    while top.parents[a] >= 0:
+        p = int(top.parents[a])
+        up[p] = max(up[a], cost[a, p])
+        a = p
+    b = int(j)
+    while b not in up:
+        p = int(top.parents[b])
+        worst = max(worst, cost[b, p])
+        b = p
+    return max(worst, up[b])
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -98,21 +117,39 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     noisy = noise_m > CLEAN_NOISE_M
     smooth = lowpass(traj, rate_hz, trim=True) if noisy else traj
     cost = np.full((S, S), np.inf)
+    hinge = np.zeros((S, S), bool)
+    radii = {}      # 2+2 pairs: the fit's marker-joint distances (a start for the final fit)
     for i in range(S):
         for j in range(i + 1, S):
-            cost[i, j] = cost[j, i] = joint_cost(smooth, members[i], members[j],
-                                                 multistart=False)
+            pc = joint_cost(smooth, members[i], members[j], multistart=False, detail=True)
+            cost[i, j] = cost[j, i] = pc.cost
+            hinge[i, j] = hinge[j, i] = pc.hinge
+            radii[i, j] = pc.radii
     # 2+2-marker pairs got only their closed-form start (an upper bound on their cost). Pairs
     # that could still matter (below RECHECK x the median tree-edge cost, but above the
-    # noise floor) get the multi-start search.
-    floor = float(np.median(cost[tuple(skeleton_tree(cost).edges.T)]))
+    # noise floor) get the multi-start search - unless the tree could not take them: by the
+    # cycle property, a pair enters the minimum spanning tree only by replacing the
+    # costliest edge on the tree path between its segments, and a true pair costs no less
+    # than the noise floor.
+    mst = skeleton_tree(cost)
+    floor = float(np.median(cost[tuple(mst.edges.T)]))
     two = np.array([m.size == 2 for m in members])
     for i, j in zip(*np.triu_indices(S, 1)):
-        if two[i] and two[j] and 1.2 * floor < cost[i, j] < max(RECHECK * floor, RECHECK_MIN_M):
-            cost[i, j] = cost[j, i] = min(cost[i, j], joint_cost(smooth, members[i],
-                                                                 members[j]))
+        if (two[i] and two[j] and 1.2 * floor < cost[i, j] < max(RECHECK * floor, RECHECK_MIN_M)
+                and _path_max(mst, cost, i, j) > PRUNE * floor):
+            pc = joint_cost(smooth, members[i], members[j], detail=True)
+            if pc.cost < cost[i, j]:
+                cost[i, j] = cost[j, i] = pc.cost
+                radii[i, j] = pc.radii
+                mst = skeleton_tree(cost)
     say(f"joint costs: {S * (S - 1) // 2} pairs")
-    top = skeleton_tree(cost)
+    # A pair whose relative motion is a rotation about one axis, fitting within the noise,
+    # is a true joint: between segments that are not neighbours the relative motion
+    # composes two or more joints' rotations, which is one-axis only for hinges about one
+    # common axis. Such pairs enter the tree first (the tree of the rest of the pairs).
+    floor = float(np.median(cost[tuple(skeleton_tree(cost).edges.T)]))
+    sure = hinge & (cost <= HINGE_SURE * floor)
+    top = skeleton_tree(cost, first=sure)
     T = traj.shape[0]
     # joint centres from the low-passed data too (all frames, untrimmed) when it is noisy
     fit_data = lowpass(traj, rate_hz) if noisy else traj
@@ -120,7 +157,10 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
 
     def fit(p, s):
         if (p, s) not in fits:
-            fits[p, s] = fit_joint(fit_data, members[p], members[s])
+            r = radii.get((min(p, s), max(p, s)))
+            if r is not None and p > s:     # radii follow the markers' order: a's, then b's
+                r = np.concatenate([r[members[s].size:], r[:members[s].size]])
+            fits[p, s] = fit_joint(fit_data, members[p], members[s], noise_m=floor, radii=r)
         return fits[p, s]
 
     # Segments meeting at one point (sibling joints within the joint-centre uncertainty):
@@ -133,7 +173,8 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
         edges = resolve_junctions(fit_data, members, top.edges, centres, cost,
                                   tol_m=JUNCTION_K * noise_m,
                                   max_cost=JUNCTION_COST * float(np.max(tree_cost)), axes=axes,
-                                  recost=lambda a, b: joint_cost(smooth, members[a], members[b]))
+                                  recost=lambda a, b: joint_cost(smooth, members[a], members[b]),
+                                  is_hinge=lambda a, b: fit(a, b).hinge)
         top = tree_from_edges(S, edges)
     say(f"topology: root segment {top.root}")
     jc = np.full((T, S, 3), np.nan)

@@ -26,13 +26,19 @@ class Topology:
     order: np.ndarray
 
 
-def skeleton_tree(cost: np.ndarray) -> Topology:
+def skeleton_tree(cost: np.ndarray, first: np.ndarray | None = None) -> Topology:
+    """``first`` (S, S) bool: pairs taken before all others (Kruskal order: the tree is
+    the minimum spanning tree with these pairs preferred, by cost among themselves)."""
     cost = np.asarray(cost, np.float64)
     S = cost.shape[0]
     if cost.shape != (S, S):
         raise ValueError(f"cost.shape={cost.shape}, expected (S, S)")
     w = np.where(np.isfinite(cost), cost, 1e6)
     w = np.minimum(w, w.T)
+    if first is not None:
+        first = np.asarray(first, bool)
+        first = first | first.T
+        w = np.where(first, w, w + 2 * (w[first].max() if first.any() else 0.0) + 1.0)
     i, j = np.triu_indices(S, 1)
     # explicit sparse entries (a dense input would drop near-zero costs as 'no edge')
     g = coo_array((w[i, j] + 1e-300, (i, j)), shape=(S, S)).tocsr()
