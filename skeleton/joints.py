@@ -28,7 +28,8 @@ from skeleton.rigid import kabsch
 __all__ = ["JointFit", "fit_joint", "HINGE_RATIO"]
 
 HINGE_RATIO = 0.05
-HINGE_Z = 4.0     # out-of-plane motion below 2 sd of its propagated noise: a hinge
+HINGE_Z = 2.0     # out-of-plane energy below 2x that of its propagated noise: a hinge
+                  # (true hinges score 0.9-1.2 with 1 mm noise; a false pair 3.4)
 MIN_FRAMES = 10
 
 
@@ -61,10 +62,29 @@ def _fail(T, reason):
                     residual_m=np.inf, hinge=False, axis_local=n, sv_ratio=np.nan)
 
 
+def frame_quality(traj: np.ndarray, idx) -> float:
+    """How well a segment's markers define a frame (m^2): the middle eigenvalue of their
+    scatter about the centroid (how far they are from a line; a plane is enough), median
+    over up to 20 frames that see them all; 0 for fewer than 3 markers. Three markers of
+    which two sit a few mm apart are nearly a line, and a rotation about it is lost in the
+    noise (linear noise propagation no longer holds)."""
+    idx = np.asarray(idx, int)
+    if idx.size < 3:
+        return 0.0
+    X = traj[:, idx]
+    full = np.flatnonzero(~np.isnan(X).any(axis=(1, 2)))
+    if full.size == 0:
+        return 0.0
+    X = X[full[np.linspace(0, full.size - 1, min(full.size, 20)).astype(int)]]
+    Q = X - X.mean(1, keepdims=True)
+    return float(np.median(np.linalg.eigvalsh(np.einsum("fni,fnj->fij", Q, Q))[:, 1]))
+
+
 def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
               ref: int | None = None, noise_m: float | None = None,
               radii: np.ndarray | None = None) -> JointFit:
-    """``ref`` forces the reference segment (0: a, 1: b); default: the one with more markers.
+    """``ref`` forces the reference segment (0: a, 1: b); default: the better frame
+    (``frame_quality``: a segment of >= 3 markers, the one least close to a line).
     ``noise_m`` (two 2-marker segments only): the cost a true joint scores on this data
     (``joint_cost``'s units); the closed-form start is kept when it scores within 1.2x that,
     else (or without it) the multi-start search runs. ``radii`` (two 2-marker segments
@@ -74,7 +94,8 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
     T = traj.shape[0]
     a, b = np.asarray(markers_a, int), np.asarray(markers_b, int)
     if ref is None:
-        ref = 0 if a.size >= b.size else 1
+        qa, qb = frame_quality(traj, a), frame_quality(traj, b)
+        ref = 0 if qa >= qb else 1
     elif ref not in (0, 1):
         raise ValueError(f"ref={ref!r}, expected 0, 1 or None")
     r_idx, c_idx = (a, b) if ref == 0 else (b, a)
@@ -151,9 +172,12 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
         # Statistical hinge test: the motion out of the best plane (smallest singular value
         # of the algebraic system) against what the propagated noise alone would put there
         # (rows 2 (x - mean): variance 4 sigma^2 w_n^2, w_n as wsq for the plane normal;
-        # sigma from this fit's own normalised residual). A small or cramped reference
-        # frame can put far more noise out of the plane than HINGE_RATIO allows.
-        sigma = np.sqrt((fun(p) ** 2).sum() / (len(pts) - 3 - len(mk)))
+        # sigma from the reference markers' own scatter about their rigid mean shape, not
+        # from this fit, whose residual a false pair inflates). A small or cramped
+        # reference frame can put far more noise out of the plane than HINGE_RATIO allows.
+        aligned = np.einsum("tij,tmj->tmi", R, traj[full][:, r_idx]) + t[:, None]
+        sigma = np.sqrt(((aligned - aligned.mean(0)) ** 2).sum()
+                        / (aligned.shape[0] * (3 * r_idx.size - 6)))
         ln = np.cross(lever, Vt[2])
         wn2 = 1 + 1 / r_idx.size + np.einsum("ni,ij,nj->n", ln, Pinv, ln)
         hinge = bool(s[-1] ** 2 < HINGE_Z * 4 * sigma**2 * wn2.sum())
@@ -232,9 +256,10 @@ def _fit_world(traj: np.ndarray, idx: np.ndarray, noise_m: float | None = None,
 
 
 # --- topology cost ----------------------------------------------------------------------
+REF_QUALITY = 0.25       # a reference frame this much worse than the other is not used
 COST_FRAMES = 200        # frames sampled (evenly) for the joint cost of one segment pair
 COST_ITERS = 60
-SCREEN_FRAMES = 30
+SCREEN_FRAMES = 20
 SCREEN_ITERS = 25
 REFINE_STARTS = 3
 # starts along each 2-marker line, in units of marker 0 -> marker 1
@@ -464,7 +489,7 @@ def _world_solve(X: np.ndarray, na: int, multistart: bool = True, iters: int = Q
     # refine them on a third of the frames, then the best on all
     mid = np.arange(0, F, 3)
     cb, rb, sb = _world_lm(np.broadcast_to(X[mid], (len(cands),) + X[mid].shape),
-                           np.array(cands)[:, mid], np.array(rads), WORLD_ITERS)
+                           np.array(cands)[:, mid], np.array(rads), SCREEN_ITERS)
     o = int(np.argmin(np.where(_plausible(rb), sb, np.inf + sb)))
     c0 = np.stack([np.interp(np.arange(F), mid, cb[o][:, k]) for k in range(3)], 1)
     c, r, ssr = _world_lm(X, c0, rb[o], WORLD_ITERS)
@@ -484,7 +509,8 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True,
     misfit. inf if the pair cannot be fitted.
 
     - One segment with >= 3 markers: the sphere fit of ``fit_joint`` in that segment's frame
-      (both ways, averaged, when both have >= 3), residuals weighted by their propagated
+      (both ways, averaged, when both have >= 3 and neither frame's ``frame_quality`` is
+      below ``REF_QUALITY`` x the other's), residuals weighted by their propagated
       noise (the reference pose's rotation noise grows with the lever arm), over the
       degrees of freedom (``JointFit.cost_m``). An unweighted residual made pairs whose
       reference markers are close together look bad, and false pairs win.
@@ -509,7 +535,8 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True,
     sel = full[np.linspace(0, full.size - 1, F).astype(int)]
     X = traj[sel][:, idx]
     if max(a.size, b.size) >= 3:
-        refs = [k for k, m in enumerate((a, b)) if m.size >= 3]
+        q = [frame_quality(traj[sel], m) for m in (a, b)]
+        refs = [k for k in (0, 1) if q[k] > 0 and q[k] >= REF_QUALITY * max(q)]
         fits = [fit_joint(traj[sel], a, b, refine=True, ref=k) for k in refs]
         cost = float(np.mean([f.cost_m for f in fits]))
         return PairCost(cost, all(f.hinge for f in fits), None) if detail else cost

@@ -22,6 +22,8 @@ import numpy as np
 __all__ = ["junction_groups", "relative_spread", "resolve_junctions"]
 
 SPREAD_FRAMES = 200
+COST_WEIGHT = 1.0   # the star's summed joint cost beside the summed relative rotation, each
+                    # over its mean across the candidate hubs
 
 
 def _gap(ca, aa, cb, ab) -> np.ndarray:
@@ -133,6 +135,8 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
             hubs = [h for h, n in zip(hubs, n_hinge) if n == max(n_hinge)]
         spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
                                for m in grp if m != h) for h in hubs])
-        hub = hubs[int(np.argmin(spread))]
+        star = np.array([sum(cost[h, m] for m in grp if m != h) for h in hubs])
+        score = spread / spread.mean() + COST_WEIGHT * star / star.mean()
+        hub = hubs[int(np.argmin(score))]
         edges = (edges - set(inner)) | {frozenset((hub, m)) for m in grp if m != hub}
     return np.array(sorted(tuple(sorted(e)) for e in edges), dtype=np.int64).reshape(-1, 2)
