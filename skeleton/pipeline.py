@@ -4,8 +4,11 @@
 -> SkeletonResult``. Stages: ``skeleton.segments`` (spectral clustering of distance
 variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every segment pair
 (noise-normalised joint-fit residual; on 6 Hz low-passed data when the data is noisy),
-``skeleton.topology`` (MST), ``skeleton.junctions`` (segments meeting at one point re-linked
-around their hub), root = tree centre, then a refined joint fit per tree edge.
+``skeleton.topology`` (MST; pairs whose fit is a hinge within the noise are taken first),
+``skeleton.junctions`` (segments meeting at one point re-linked around their hub), root =
+tree centre, then a refined joint fit per tree edge. Two-marker pairs are fitted in world
+coordinates from a closed-form start, re-searched from many starts where the tree could take
+them.
 Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
