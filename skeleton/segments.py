@@ -116,7 +116,8 @@ def noise_sd(sd: np.ndarray) -> float:
 
 
 def _split_nonrigid(sd: np.ndarray, labels: np.ndarray, tau: float) -> np.ndarray:
-    """Split (complete linkage, in two) every cluster holding a pair with sd > tau, repeatedly."""
+    """Split (complete linkage, in two) every cluster holding a pair with sd > tau, repeatedly,
+    where both halves keep >= 2 markers."""
     labels = labels.copy()
     changed = True
     while changed:
@@ -127,6 +128,9 @@ def _split_nonrigid(sd: np.ndarray, labels: np.ndarray, tau: float) -> np.ndarra
             if idx.size < 2 or sub.max() <= tau:
                 continue
             two = fcluster(linkage(squareform(sub, checks=False), "complete"), 2, "maxclust")
+            if min((two == 1).sum(), (two == 2).sum()) < 2:
+                continue    # one marker off its segment (a mis-merged trajectory, an outlier)
+                            # is no segment: no skeleton can line up a single marker
             labels[idx[two == 2]] = labels.max() + 1
             changed = True
     return labels
@@ -151,6 +155,21 @@ def _reassign(sd: np.ndarray, labels: np.ndarray) -> np.ndarray:
         i = int(np.argmax(gain))
         labels[i] = best[i]
     return labels
+
+
+def _fold_singletons(sd: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """A one-marker cluster (a marker rigid with nothing: a tracker's swap, a wrong
+    marker-set merge) joins the cluster it is most rigid with (smallest mean squared
+    distance SD): a segment needs >= 2 markers to be lined up at all."""
+    labels = labels.copy()
+    while True:
+        n = np.bincount(labels)
+        lone = np.flatnonzero(n == 1)
+        if lone.size == 0 or (n > 0).sum() < 2:
+            return labels
+        i = int(np.flatnonzero(labels == lone[0])[0])
+        cand = [c for c in np.flatnonzero(n > 0) if c != lone[0]]
+        labels[i] = min(cand, key=lambda c: float(np.mean(sd[i, labels == c] ** 2)))
 
 
 def segment_markers(traj: np.ndarray, n_segments: int | None = None, rng=None) -> Segmentation:
@@ -184,6 +203,8 @@ def segment_markers(traj: np.ndarray, n_segments: int | None = None, rng=None) -
     if n_segments is None:
         labels = _split_nonrigid(sd, labels, max(RIGID_FACTOR * noise, SCALE_FLOOR_M))
     labels = _reassign(sd, labels)
+    if n_segments is None:
+        labels = _fold_singletons(sd, labels)
     # relabel in order of first marker (drops any emptied label)
     _, first = np.unique(labels, return_index=True)
     remap = np.full(labels.max() + 1, -1, np.int64)

@@ -136,6 +136,26 @@ def _count(base: int, noise_m: float, gaps: bool = False, n: int = 50) -> list[i
     return bad
 
 
+def test_a_mismerged_trajectory_is_no_segment_of_its_own():
+    """A trajectory that is one marker for the first half and another segment's marker for
+    the second (a tracker's swap, a wrong marker-set merge) is rigid with nothing. The
+    rigidity split must not make it a one-marker segment (no skeleton can line one marker
+    up): every segment keeps >= 2 markers, and the other markers' partition stays right."""
+    fig, mo = _figure(1011)
+    tr = _noisy(mo.markers, 1011, NOISE_M)
+    a = int(np.flatnonzero(fig.marker_segment == 0)[0])
+    b = int(np.flatnonzero(fig.marker_segment == fig.n_segments - 1)[0])
+    bad = np.concatenate([tr[:300, a], tr[300:, b]])
+    X = np.concatenate([tr, bad[:, None]], axis=1)
+    seg = segment_markers(X, None, rng=0)
+    assert np.bincount(seg.labels).min() >= 2
+    truth = fig.marker_segment
+    est = seg.labels[:-1]
+    same_t = truth[:, None] == truth[None]
+    same_e = est[:, None] == est[None]
+    assert (same_t == same_e).all()
+
+
 if __name__ == "__main__":
     for base in [int(a) for a in sys.argv[1:]] or [1000, 2000]:
         for noise_m, gaps in ((0.0, False), (NOISE_M, False), (NOISE_M, True), (0.5e-3, False),
