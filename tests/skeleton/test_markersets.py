@@ -88,6 +88,8 @@ def test_bad_input():
         merge_fragments(np.zeros((10, 3)))
     with pytest.raises(ValueError, match="neighbours=2"):
         merge_fragments(np.zeros((10, 4, 3)), neighbours=2)
+    with pytest.raises(ValueError, match="swap_margin=-1"):
+        merge_fragments(np.zeros((10, 4, 3)), swap_margin=-1.0)
 
 
 @pytest.mark.parametrize("k", [15, 18])
@@ -103,3 +105,49 @@ def test_long_gaps_do_not_pair_markers_across_segments(k):
                         n_gaps=(1, 4), gap_frames=(3, 40))
     ms = merge_fragments(X)
     _check(fig, X, owner, ms, mo.markers)
+
+
+def _bench_figure(k):
+    """Figure k of bench_skeleton_outputs.py / bench_markersets.py."""
+    g = np.random.default_rng(1000 + k)
+    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=1000 + k)
+    mo = animate(fig, 400, rng=1000 + k, rom_deg=60.0)
+    X, owner = fragment(mo.markers + g.normal(0, NOISE_M, mo.markers.shape), k,
+                        n_gaps=(1, 4), gap_frames=(3, 40))
+    return fig, mo, X, owner
+
+
+@pytest.mark.parametrize("k", [26, 39])
+def test_swapped_markers_of_one_segment_are_repaired(k):
+    """Benchmark figures 26 and 39 (same-segment markers >= 16 mm apart): the linkage alone
+    swaps two markers of one segment across a gap (each id holds fragments of both); the
+    swap repair (rigidity with respect to the segment's other markers) undoes it."""
+    fig, mo, X, owner = _bench_figure(k)
+    before = merge_fragments(X, repair_swaps=False)
+    mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
+    assert len(mixed) == 2                      # the failure this test guards against
+    a, b = ({int(owner[f]) for f in g} for g in mixed)
+    assert a == b and len({int(fig.marker_segment[m]) for m in a}) == 1
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+def test_planted_swap_is_repaired():
+    """Correct groups with the fragments of two markers of one segment exchanged after a
+    common gap: the repair restores the truth exactly (up to the order of the ids)."""
+    from skeleton.markersets import _repair_swaps
+    fig, k = _physical_tree(10, 30)
+    mo = animate(fig, 400, rng=k)
+    X = mo.markers + np.random.default_rng(k).normal(0, NOISE_M, mo.markers.shape)
+    seg = np.bincount(fig.marker_segment).argmax()          # a segment with >= 3 markers
+    m0, m1 = np.flatnonzero(fig.marker_segment == seg)[:2]
+    assert (fig.marker_segment == seg).sum() >= 3
+    X[190:200, [m0, m1]] = np.nan                            # a common gap ...
+    X = np.concatenate([X[:, :, None], np.full_like(X[:, :, None], np.nan)], 2)
+    X[200:, :, 1], X[200:, :, 0] = X[200:, :, 0], np.nan     # ... cuts every marker there
+    X = X.reshape(400, -1, 3)                                # column 2m: before, 2m+1: after
+    truth = [[2 * m, 2 * m + 1] for m in range(fig.n_markers)]
+    planted = [list(g) for g in truth]
+    planted[m0][1], planted[m1][1] = 2 * m1 + 1, 2 * m0 + 1
+    assert planted != truth
+    repaired = _repair_swaps(X, planted, MIN_FRAMES, 1.0)
+    assert sorted(sorted(int(f) for f in g) for g in repaired) == truth
