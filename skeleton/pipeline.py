@@ -35,9 +35,14 @@ BROKEN_M = 0.02        # ... or above this (no fit: the closed-form start failed
 PRUNE = 0.9            # ... and the tree path between them has an edge above this x it
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
 HINGE_SURE = 1.5       # hinge pairs costing at most this x the median tree-edge cost: sure
-JUNCTION_K = 4.0       # tree joints closer than this x the within-segment distance sd: one
+JUNCTION_K = 25.0      # tree joints closer than this x the within-segment distance sd: one
 JUNCTION_COST = 1.5    # junction (skeleton.junctions), re-linked with edges costing at most
-                       # this x the largest tree-edge cost
+                       # this x the largest tree-edge cost. Sibling joints a few cm apart are
+                       # still told apart better by the hub prior + star cost than by the
+                       # MST's pairwise costs: exact topology over seed sets 1000/2000/3000
+                       # (1 mm noise; benchmarks/bench_skeleton.py) with K = 4: 47/44/43,
+                       # 8: 47/44/47, 12: 48/46/48, 20: 49/47/48, 30: 49/47/48; on a fresh
+                       # set 4000, looked at once per value: K = 4 37/50, K = 25 43/50.
 
 
 def lowpass(traj: np.ndarray, rate_hz: float, cutoff_hz: float = COST_CUTOFF_HZ,
