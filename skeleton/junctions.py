@@ -142,7 +142,9 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
         spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
                                for m in grp if m != h) for h in hubs])
         star = np.array([sum(cost[h, m] for m in grp if m != h) for h in hubs])
-        score = spread / spread.mean() + COST_WEIGHT * star / star.mean()
+        score = spread / spread.mean() if spread.mean() > 0 else np.zeros(len(hubs))
+        if np.isfinite(star).all() and star.mean() > 0:    # noise-free costs are all ~0
+            score = score + COST_WEIGHT * star / star.mean()
         hub = hubs[int(np.argmin(score))]
         edges = (edges - set(inner)) | {frozenset((hub, m)) for m in grp if m != hub}
     return np.array(sorted(tuple(sorted(e)) for e in edges), dtype=np.int64).reshape(-1, 2)
