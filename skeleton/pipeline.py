@@ -28,7 +28,7 @@ __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
 
 COST_CUTOFF_HZ = 6.0   # low-pass for the topology costs (biomechanics' usual 6 Hz)
 RECHECK = 10.0         # 2+2 pairs re-searched when their quick cost is below RECHECK x ...
-RECHECK_MIN_M = 1e-5   # ... the median tree-edge cost (or this)
+RECHECK_MIN_M = 5e-3   # ... the median tree-edge cost (noise-free data: below this)
 BROKEN_M = 0.02        # ... or above this (no fit: the closed-form start failed; measured on
                        # 30 held-out figures: 2 of 45 true 2+2 pairs scored 139 and 507 mm,
                        # 48 of 267 false ones > 20 mm)
@@ -147,7 +147,7 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     two = np.array([m.size == 2 for m in members])
     for i, j in zip(*np.triu_indices(S, 1)):
         if (two[i] and two[j] and 1.2 * floor < cost[i, j]
-                and (cost[i, j] < max(RECHECK * floor, RECHECK_MIN_M) or cost[i, j] > BROKEN_M)
+                and (cost[i, j] < (RECHECK * floor if noisy else RECHECK_MIN_M) or cost[i, j] > BROKEN_M)
                 and _path_max(mst, cost, i, j) > PRUNE * floor):
             pc = joint_cost(smooth, members[i], members[j], detail=True)
             if pc.cost < cost[i, j]:
