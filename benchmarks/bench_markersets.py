@@ -24,18 +24,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hw_sim.articulated import animate, random_tree  # noqa: E402
 from skeleton.markersets import merge_fragments  # noqa: E402
-from tests.skeleton._figures import fragment  # noqa: E402
+from tests.skeleton._figures import fragment, marker_spacing  # noqa: E402
 
 VARIANTS = {"repair": {}, "no repair": {"repair_swaps": False}}
 
 
-def spacing(fig):
-    d = np.inf
-    for s in range(fig.n_segments):
-        P = fig.marker_offsets[fig.marker_segment == s]
-        D = np.linalg.norm(P[:, None] - P[None], axis=2) + np.eye(len(P)) * 1e9
-        d = min(d, D.min())
-    return d
 
 
 def one_figure(k, T=400):
@@ -44,7 +37,7 @@ def one_figure(k, T=400):
     mo = animate(fig, T, rng=1000 + k, rom_deg=60.0)
     X, owner = fragment(mo.markers + g.normal(0, 1e-3, mo.markers.shape), k,
                         n_gaps=(1, 4), gap_frames=(3, 40))
-    r = {"k": k, "M": fig.n_markers, "F": X.shape[1], "spacing": spacing(fig)}
+    r = {"k": k, "M": fig.n_markers, "F": X.shape[1], "spacing": marker_spacing(fig)}
     for name, kw in VARIANTS.items():
         t0 = time.perf_counter()
         ms = merge_fragments(X, **kw)

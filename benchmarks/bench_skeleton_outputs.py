@@ -31,16 +31,10 @@ from skeleton.ik import refine_fit  # noqa: E402
 from skeleton.markersets import merge_fragments  # noqa: E402
 from skeleton.pipeline import solve_skeleton  # noqa: E402
 from skeleton.rigid_skeleton import build_rigid_skeleton  # noqa: E402
-from tests.skeleton._figures import fragment, joint_errors, segment_map  # noqa: E402
+from tests.skeleton._figures import (fragment, joint_errors, marker_spacing,  # noqa: E402
+                                     segment_map)
 
 
-def spacing(fig):
-    d = np.inf
-    for s in range(fig.n_segments):
-        P = fig.marker_offsets[fig.marker_segment == s]
-        D = np.linalg.norm(P[:, None] - P[None], axis=2) + np.eye(len(P)) * 1e9
-        d = min(d, D.min())
-    return d
 
 
 def bvh_error(rig, fit):
@@ -73,7 +67,7 @@ def main(n_fig=10, T=400):
         pure = all(len({owner[f] for f in grp}) == 1 for grp in ms.groups)
         one = sorted(owner[grp[0]] for grp in ms.groups) == list(range(fig.n_markers))
         r = {"S": fig.n_segments, "M": fig.n_markers, "F": X.shape[1], "merged": pure and one,
-             "pure": pure, "physical": spacing(fig) >= 0.02, "t_merge": t_merge}
+             "pure": pure, "physical": marker_spacing(fig) >= 0.02, "t_merge": t_merge}
         for noise in (0.0, 1e-3):
             tr = mo.markers + g.normal(0, noise, mo.markers.shape)
             t0 = time.perf_counter()

@@ -147,3 +147,14 @@ def min_sibling_joint_distance(fig):
             for j in range(i + 1, len(off)):
                 d = min(d, float(np.linalg.norm(off[i] - off[j])))
     return d
+
+
+def marker_spacing(fig) -> float:
+    """Smallest distance (m) between two markers of one segment (hw_sim's random_tree can put
+    them closer than a marker's diameter; the benchmarks count such figures apart)."""
+    d = np.inf
+    for s in range(fig.n_segments):
+        P = fig.marker_offsets[fig.marker_segment == s]
+        D = np.linalg.norm(P[:, None] - P[None], axis=2) + np.eye(len(P)) * 1e9
+        d = min(d, D.min())
+    return d

@@ -6,21 +6,13 @@ import pytest
 
 from hw_sim.articulated import animate, humanoid, random_tree
 from skeleton.markersets import merge_fragments
-from tests.skeleton._figures import fragment
+from tests.skeleton._figures import fragment, marker_spacing
 
 MIN_FRAMES = 10
 NOISE_M = 1e-3
 MIN_SPACING_M = 0.02   # real marker sets keep markers apart (14 mm markers cannot overlap)
 
 
-def _spacing(fig) -> float:
-    """Smallest distance between two markers of one segment."""
-    d = np.inf
-    for s in range(fig.n_segments):
-        P = fig.marker_offsets[fig.marker_segment == s]
-        D = np.linalg.norm(P[:, None] - P[None], axis=2) + np.eye(len(P)) * 1e9
-        d = min(d, D.min())
-    return d
 
 
 def _physical_tree(n, seed):
@@ -28,7 +20,7 @@ def _physical_tree(n, seed):
     a few mm apart, which no real marker set does): the first such seed from ``seed``."""
     for k in range(seed, seed + 100):
         fig = random_tree(n, (2, 4), rng=k)
-        if _spacing(fig) >= MIN_SPACING_M:
+        if marker_spacing(fig) >= MIN_SPACING_M:
             return fig, k
     raise AssertionError("no physical figure")
 
@@ -53,7 +45,7 @@ def _check(fig, X, owner, ms, truth):
 @pytest.mark.parametrize("seed,noise", [(0, 0.0), (1, NOISE_M), (2, NOISE_M)])
 def test_fragments_merge_to_physical_markers(seed, noise):
     fig = humanoid(rng=seed) if seed == 0 else _physical_tree(8 + seed, seed)[0]
-    assert _spacing(fig) >= MIN_SPACING_M
+    assert marker_spacing(fig) >= MIN_SPACING_M
     mo = animate(fig, 600, rng=seed)
     meas = mo.markers + np.random.default_rng(9).normal(0, noise, mo.markers.shape)
     X, owner = fragment(meas, seed)
@@ -99,7 +91,7 @@ def test_long_gaps_do_not_pair_markers_across_segments(k):
     (4-6 mm)."""
     g = np.random.default_rng(1000 + k)
     fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=1000 + k)
-    assert _spacing(fig) >= MIN_SPACING_M
+    assert marker_spacing(fig) >= MIN_SPACING_M
     mo = animate(fig, 400, rng=1000 + k, rom_deg=60.0)
     X, owner = fragment(mo.markers + g.normal(0, NOISE_M, mo.markers.shape), k,
                         n_gaps=(1, 4), gap_frames=(3, 40))
