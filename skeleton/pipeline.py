@@ -138,16 +138,17 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
             radii[i, j] = pc.radii
     # 2+2-marker pairs got only their closed-form start (an upper bound on their cost). Pairs
     # that could still matter (below RECHECK x the median tree-edge cost, but above the
-    # noise floor; or no fit at all) get the multi-start search - unless the tree could not take them: by the
-    # cycle property, a pair enters the minimum spanning tree only by replacing the
-    # costliest edge on the tree path between its segments, and a true pair costs no less
-    # than the noise floor.
+    # noise floor; or no fit at all) get the multi-start search - unless the tree could not
+    # take them: by the cycle property, a pair enters the minimum spanning tree only by
+    # replacing the costliest edge on the tree path between its segments, and a true pair
+    # costs no less than the noise floor.
     mst = skeleton_tree(cost)
     floor = float(np.median(cost[tuple(mst.edges.T)]))
     two = np.array([m.size == 2 for m in members])
     for i, j in zip(*np.triu_indices(S, 1)):
+        upper = RECHECK * floor if noisy else RECHECK_MIN_M
         if (two[i] and two[j] and 1.2 * floor < cost[i, j]
-                and (cost[i, j] < (RECHECK * floor if noisy else RECHECK_MIN_M) or cost[i, j] > BROKEN_M)
+                and (cost[i, j] < upper or cost[i, j] > BROKEN_M)
                 and _path_max(mst, cost, i, j) > PRUNE * floor):
             pc = joint_cost(smooth, members[i], members[j], detail=True)
             if pc.cost < cost[i, j]:
