@@ -132,19 +132,33 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
         axes = axes or {}
         ball = [e for e in inner if axes.get(e) is None] or inner   # a hinge's centre is
         c = np.nanmean(np.stack([centres[e] for e in ball]), axis=0)   # arbitrary on its axis
-        hubs = [h for h in sorted(grp)
-                if all(ok(h, m) for m in grp if m != h)]
-        if not hubs:
+
+        def choose(group):
+            hubs = [h for h in sorted(group) if all(ok(h, m) for m in group if m != h)]
+            if not hubs:
+                return None
+            if is_hinge is not None:
+                n_hinge = [sum(bool(is_hinge(h, m)) for m in group if m != h) for h in hubs]
+                hubs = [h for h, n in zip(hubs, n_hinge) if n == max(n_hinge)]
+            spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
+                                   for m in group if m != h) for h in hubs])
+            star = np.array([sum(cost[h, m] for m in group if m != h) for h in hubs])
+            score = spread / spread.mean() if spread.mean() > 0 else np.zeros(len(hubs))
+            if np.isfinite(star).all() and star.mean() > 0:   # noise-free costs are all ~0
+                score = score + COST_WEIGHT * star / star.mean()
+            return hubs[int(np.argmin(score))]
+
+        # Siblings linked among themselves leave their parent outside the group when their
+        # fitted centres scatter (two-marker segments): a tree neighbour that fits a joint
+        # with every member is a hub candidate too, and the group grows by it if it wins.
+        hub = None
+        for n in sorted({v for e in edges if len(e & grp) == 1 for v in e} - grp):
+            if all(ok(n, m) for m in grp) and choose(grp | {n}) == n:
+                hub, grp = n, grp | {n}
+                inner = [e for e in edges if e <= grp]
+                break
+        hub = choose(grp) if hub is None else hub
+        if hub is None:
             continue
-        if is_hinge is not None:
-            n_hinge = [sum(bool(is_hinge(h, m)) for m in grp if m != h) for h in hubs]
-            hubs = [h for h, n in zip(hubs, n_hinge) if n == max(n_hinge)]
-        spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
-                               for m in grp if m != h) for h in hubs])
-        star = np.array([sum(cost[h, m] for m in grp if m != h) for h in hubs])
-        score = spread / spread.mean() if spread.mean() > 0 else np.zeros(len(hubs))
-        if np.isfinite(star).all() and star.mean() > 0:    # noise-free costs are all ~0
-            score = score + COST_WEIGHT * star / star.mean()
-        hub = hubs[int(np.argmin(score))]
         edges = (edges - set(inner)) | {frozenset((hub, m)) for m in grp if m != hub}
     return np.array(sorted(tuple(sorted(e)) for e in edges), dtype=np.int64).reshape(-1, 2)

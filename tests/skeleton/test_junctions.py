@@ -57,6 +57,43 @@ def test_junction_relinked_around_parent(seed):
     assert {frozenset(map(int, e)) for e in out} == truth
 
 
+
+def _three_sibling_figure(seed):
+    """A random tree whose first parent with three ball-jointed children gets all three
+    children's joints at one point. Returns (fig, parent, (a, b, c))."""
+    for s in range(seed, seed + 400):
+        fig = random_tree(10, (2, 4), rng=s)
+        for p in range(fig.n_segments):
+            ch = [c for c in np.flatnonzero(fig.parents == p) if fig.joint_types[c] == "ball"]
+            if len(ch) >= 3:
+                off = np.array(fig.joint_offsets)
+                off[ch[1]] = off[ch[2]] = off[ch[0]]
+                return dataclasses.replace(fig, joint_offsets=off), p, tuple(ch[:3])
+    raise AssertionError("no figure with three ball-jointed siblings")
+
+
+@pytest.mark.parametrize("seed", [0, 500])
+def test_parent_outside_the_group_becomes_the_hub(seed):
+    """Three siblings linked among themselves (a-b, b-c), and their parent linked to a by an
+    edge whose fitted centre is scattered off the junction (as two-marker segments' centres
+    are): the group found holds only the siblings, yet the parent, a tree neighbour that fits
+    a joint with each of them, becomes the hub and the truth is restored."""
+    fig, p, (a, b, c) = _three_sibling_figure(seed)
+    mo = animate(fig, 600, rng=seed, rom_deg=60.0)
+    members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
+    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
+    wrong = (truth - {frozenset((p, b)), frozenset((p, c))}) | {frozenset((a, b)),
+                                                                 frozenset((b, c))}
+    edges = np.array([sorted(e) for e in wrong])
+    centres = _truth_centres(fig, mo, truth | wrong)
+    centres[frozenset((a, b))] = centres[frozenset((b, c))] = mo.joint_centres[:, a]
+    centres[frozenset((p, a))] = mo.joint_centres[:, a] + 0.05         # scattered off
+    assert {a, b, c} in junction_groups(edges, centres, TOL_M)
+    cost = np.zeros((fig.n_segments,) * 2)
+    out = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=1.0)
+    assert {frozenset(map(int, e)) for e in out} == truth
+
+
 def test_junction_needs_coincident_joints():
     """Adjacent tree joints farther apart than the tolerance form no group."""
     fig = random_tree(8, (2, 4), rng=5)
