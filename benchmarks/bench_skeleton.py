@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from hw_sim.articulated import animate, random_tree  # noqa: E402
 from skeleton.pipeline import solve_skeleton  # noqa: E402
 from tests.skeleton._figures import (min_sibling_joint_distance,  # noqa: E402
-                                     topology_equivalent)
+                                     segment_map, solver_joint_errors, topology_equivalent)
 
 THESIS_LARGEST_S = 70.0
 CLOSE_SIBLINGS_M = 0.010
@@ -40,25 +40,13 @@ def run(fig, mo, noise_m, seed):
     t0 = time.perf_counter()
     res = solve_skeleton(tr, mo.rate_hz, rng=0)
     dt = time.perf_counter() - t0
-    segmap = []
-    for s in range(fig.n_segments):
-        lab = set(res.labels[fig.marker_segment == s].tolist())
-        segmap.append(lab.pop() if len(lab) == 1 else -1)
-    if -1 in segmap or len(set(segmap)) != fig.n_segments or res.n_segments != fig.n_segments:
+    segmap = segment_map(fig, res.labels)
+    if segmap is None or res.n_segments != fig.n_segments:
         return False, [], dt, res
     truth = {tuple(sorted((segmap[s], segmap[fig.parents[s]]))) for s in range(1, fig.n_segments)}
     est = {tuple(sorted((s, int(res.parents[s])))) for s in range(res.n_segments)
            if res.parents[s] >= 0}
-    errs = []
-    if est == truth:
-        for s in range(1, fig.n_segments):
-            e, ep = segmap[s], segmap[fig.parents[s]]
-            j = res.joints[e] if res.parents[e] == ep else res.joints[ep]
-            d = j.world - mo.joint_centres[:, s]
-            if fig.joint_types[s] == "hinge":
-                ax = np.einsum("tij,j->ti", mo.world_from_segment_R[:, s], fig.hinge_axes[s])
-                d = d - (d * ax).sum(1, keepdims=True) * ax
-            errs.append(np.nanmedian(np.linalg.norm(d, axis=1)))
+    errs = list(solver_joint_errors(fig, mo, res, segmap)) if est == truth else []
     return est == truth, errs, dt, res
 
 

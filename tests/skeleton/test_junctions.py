@@ -16,18 +16,24 @@ from tests.skeleton._figures import coincident_joint_groups, topology_equivalent
 TOL_M = 1e-3
 
 
-def _junction_figure(seed):
-    """A random tree whose first parent with two ball-jointed children gets both children's
-    joints at the same point (a three-way junction). Returns (fig, parent, a, b)."""
-    for s in range(seed, seed + 200):
-        fig = random_tree(8, (2, 4), rng=s)
+def _coincident_siblings(seed, n_children=2, n_segments=8, tries=200):
+    """A random tree whose first parent with ``n_children`` ball-jointed children gets those
+    children's joints at one point. Returns (fig, parent, children)."""
+    for s in range(seed, seed + tries):
+        fig = random_tree(n_segments, (2, 4), rng=s)
         for p in range(fig.n_segments):
             ch = [c for c in np.flatnonzero(fig.parents == p) if fig.joint_types[c] == "ball"]
-            if len(ch) >= 2:
+            if len(ch) >= n_children:
                 off = np.array(fig.joint_offsets)
-                off[ch[1]] = off[ch[0]]
-                return dataclasses.replace(fig, joint_offsets=off), p, ch[0], ch[1]
-    raise AssertionError("no figure with two ball-jointed siblings")
+                off[ch[1:n_children]] = off[ch[0]]
+                return dataclasses.replace(fig, joint_offsets=off), p, tuple(ch[:n_children])
+    raise AssertionError(f"no figure with {n_children} ball-jointed siblings")
+
+
+def _junction_figure(seed):
+    """Two siblings at one point (a three-way junction). Returns (fig, parent, a, b)."""
+    fig, p, (a, b) = _coincident_siblings(seed)
+    return fig, p, a, b
 
 
 def _truth_centres(fig, mo, edges):
@@ -58,27 +64,13 @@ def test_junction_relinked_around_parent(seed):
 
 
 
-def _three_sibling_figure(seed):
-    """A random tree whose first parent with three ball-jointed children gets all three
-    children's joints at one point. Returns (fig, parent, (a, b, c))."""
-    for s in range(seed, seed + 400):
-        fig = random_tree(10, (2, 4), rng=s)
-        for p in range(fig.n_segments):
-            ch = [c for c in np.flatnonzero(fig.parents == p) if fig.joint_types[c] == "ball"]
-            if len(ch) >= 3:
-                off = np.array(fig.joint_offsets)
-                off[ch[1]] = off[ch[2]] = off[ch[0]]
-                return dataclasses.replace(fig, joint_offsets=off), p, tuple(ch[:3])
-    raise AssertionError("no figure with three ball-jointed siblings")
-
-
 @pytest.mark.parametrize("seed", [0, 500])
 def test_parent_outside_the_group_becomes_the_hub(seed):
     """Three siblings linked among themselves (a-b, b-c), and their parent linked to a by an
     edge whose fitted centre is scattered off the junction (as two-marker segments' centres
     are): the group found holds only the siblings, yet the parent, a tree neighbour that fits
     a joint with each of them, becomes the hub and the truth is restored."""
-    fig, p, (a, b, c) = _three_sibling_figure(seed)
+    fig, p, (a, b, c) = _coincident_siblings(seed, 3, n_segments=10, tries=400)
     mo = animate(fig, 600, rng=seed, rom_deg=60.0)
     members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
     truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
