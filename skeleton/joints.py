@@ -82,7 +82,7 @@ def frame_quality(traj: np.ndarray, idx) -> float:
 
 def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
               ref: int | None = None, noise_m: float | None = None,
-              radii: np.ndarray | None = None) -> JointFit:
+              radii: np.ndarray | None = None, min_quality: float = 0.0) -> JointFit:
     """``ref`` forces the reference segment (0: a, 1: b); default: the better frame
     (``frame_quality``: a segment of >= 3 markers, the one least close to a line).
     ``noise_m`` (two 2-marker segments only): the cost a true joint scores on this data
@@ -95,12 +95,14 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
     a, b = np.asarray(markers_a, int), np.asarray(markers_b, int)
     if ref is None:
         qa, qb = frame_quality(traj, a), frame_quality(traj, b)
+        if max(qa, qb) <= min_quality:
+            return _fit_world(traj, a.size, np.concatenate([a, b]), noise_m, radii)
         ref = 0 if qa >= qb else 1
     elif ref not in (0, 1):
         raise ValueError(f"ref={ref!r}, expected 0, 1 or None")
     r_idx, c_idx = (a, b) if ref == 0 else (b, a)
     if r_idx.size < 3:
-        return _fit_world(traj, np.concatenate([a, b]), noise_m, radii)
+        return _fit_world(traj, a.size, np.concatenate([a, b]), noise_m, radii)
     full = ~np.isnan(traj[:, r_idx]).any(axis=(1, 2))
     if full.sum() < MIN_FRAMES:
         return _fail(T, f"only {int(full.sum())} frames see the reference segment")
@@ -204,7 +206,7 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
 FRAME_ITERS = 8
 
 
-def _fit_world(traj: np.ndarray, idx: np.ndarray, noise_m: float | None = None,
+def _fit_world(traj: np.ndarray, na: int, idx: np.ndarray, noise_m: float | None = None,
                radii: np.ndarray | None = None) -> JointFit:
     """Two-marker segments: a per-frame centre ``c_t`` at constant distances ``r_m`` from
     every marker of both segments (the thesis' cost in world coordinates), ``_world_solve``."""
@@ -218,9 +220,9 @@ def _fit_world(traj: np.ndarray, idx: np.ndarray, noise_m: float | None = None,
     sub = np.linspace(0, full.size - 1, min(full.size, COST_FRAMES)).astype(int)
     Xs = X[sub]
     dof = Xs.shape[0] * (idx.size - 3) - idx.size
-    cs, r, ssr = _world_solve(Xs, idx.size // 2, multistart=False, iters=WORLD_ITERS)
+    cs, r, ssr = _world_solve(Xs, na, multistart=False, iters=WORLD_ITERS)
     if radii is not None:   # the centres at those distances (closed form), refined
-        k = radii[1:] ** 2 - radii[0] ** 2
+        k = radii[1:4] ** 2 - radii[0] ** 2
         M = 2 * (Xs[:, 1:4] - Xs[:, :1])
         y = (Xs[:, 1:4] ** 2).sum(2) - (Xs[:, 0] ** 2).sum(1)[:, None]
         c0 = np.einsum("fij,fj->fi", np.linalg.pinv(M), y - k)
@@ -228,7 +230,7 @@ def _fit_world(traj: np.ndarray, idx: np.ndarray, noise_m: float | None = None,
         if _plausible(r2[None])[0] and (ssr2 < ssr or not _plausible(r[None])[0]):
             cs, r, ssr = cs2, r2, ssr2
     elif noise_m is None or dof <= 0 or not np.sqrt(ssr / dof) <= 1.2 * noise_m:
-        cs2, r2, ssr2 = _world_solve(Xs, idx.size // 2)
+        cs2, r2, ssr2 = _world_solve(Xs, na)
         if ssr2 < ssr or not _plausible(r[None])[0]:
             cs, r = cs2, r2
     c = np.stack([np.interp(np.arange(full.size), sub, cs[:, k]) for k in range(3)], 1)
@@ -503,7 +505,7 @@ class PairCost(NamedTuple):
 
 
 def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True,
-               detail: bool = False):
+               detail: bool = False, min_quality: float = 0.0):
     """Topology cost of a candidate joint between two segments, normalised so that a true
     joint scores the marker noise sd (m) whatever the marker layout; a false pair adds its
     misfit. inf if the pair cannot be fitted.
@@ -534,9 +536,9 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True,
         return PairCost(np.inf, False, None) if detail else np.inf
     sel = full[np.linspace(0, full.size - 1, F).astype(int)]
     X = traj[sel][:, idx]
-    if max(a.size, b.size) >= 3:
-        q = [frame_quality(traj[sel], m) for m in (a, b)]
-        refs = [k for k in (0, 1) if q[k] > 0 and q[k] >= REF_QUALITY * max(q)]
+    q = [frame_quality(traj[sel], m) for m in (a, b)]
+    if max(q) > min_quality:
+        refs = [k for k in (0, 1) if q[k] > min_quality and q[k] >= REF_QUALITY * max(q)]
         fits = [fit_joint(traj[sel], a, b, refine=True, ref=k) for k in refs]
         cost = float(np.mean([f.cost_m for f in fits]))
         return PairCost(cost, all(f.hinge for f in fits), None) if detail else cost

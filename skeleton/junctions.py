@@ -18,7 +18,10 @@ hubs, weight ``COST_WEIGHT``): on 93 junctions of the solver's own trees over se
 1000+, 2000+ and 3000+ of benchmarks/bench_skeleton.py (1 mm noise) the prior alone picked
 the true hub in 88, the cost sum alone in 63, both in 90. Hinge fits are evidence, not a
 prior: hubs whose star has the most hinge pairs are kept first (``is_hinge``). A hub whose
-star would use an edge costing more than ``max_cost`` is not considered.
+star would use an edge costing more than ``max_cost`` is not considered. A group that no
+member can join as a hub chained distinct junctions (each joint within the tolerance of the
+next): it is split at half the tolerance, up to ``SPLIT_DEPTH`` times, and each tighter group
+resolved (held-out seed 5027: siblings 1.5 mm apart inside a chain of nine segments).
 Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
@@ -28,6 +31,7 @@ import numpy as np
 __all__ = ["junction_groups", "relative_spread", "resolve_junctions"]
 
 SPREAD_FRAMES = 200
+SPLIT_DEPTH = 2     # a group without a hub is split at half the tolerance, at most this often
 COST_WEIGHT = 1.0   # the star's summed joint cost beside the summed relative rotation, each
                     # over its mean across the candidate hubs
 
@@ -111,7 +115,8 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
                       recost=None, is_hinge=None) -> np.ndarray:
     """Tree edges (S-1, 2) with every junction group re-linked as a star around its hub
     (see the module docstring). A member whose star would use an edge costing more than
-    ``max_cost`` is no candidate hub (a group without candidates is left as it is);
+    ``max_cost`` is no candidate hub (a group without candidates is split, see the module
+    docstring, or else left as it is);
     ``recost(a, b)``, when given, first re-evaluates such a pair (a quick cost may be an
     upper bound). ``is_hinge(a, b)``, when given, says whether the pair's relative motion
     is a rotation about one fixed axis: that is evidence, not a prior (the rotation between
@@ -126,39 +131,50 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
             cost[a, b] = cost[b, a] = min(cost[a, b], recost(a, b))
         return cost[a, b] <= max_cost
 
-    for grp in junction_groups(sorted(tuple(sorted(e)) for e in edges), centres, tol_m,
-                               axes):
+    axes = axes or {}
+
+    def choose(group, c):
+        hubs = [h for h in sorted(group) if all(ok(h, m) for m in group if m != h)]
+        if not hubs:
+            return None
+        if is_hinge is not None:
+            n_hinge = [sum(bool(is_hinge(h, m)) for m in group if m != h) for h in hubs]
+            hubs = [h for h, n in zip(hubs, n_hinge) if n == max(n_hinge)]
+        spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
+                               for m in group if m != h) for h in hubs])
+        star = np.array([sum(cost[h, m] for m in group if m != h) for h in hubs])
+        score = spread / spread.mean() if spread.mean() > 0 else np.zeros(len(hubs))
+        if np.isfinite(star).all() and star.mean() > 0:   # noise-free costs are all ~0
+            score = score + COST_WEIGHT * star / star.mean()
+        return hubs[int(np.argmin(score))]
+
+    def relink(edges, grp, tol, depth):
         inner = [e for e in edges if e <= grp]
-        axes = axes or {}
         ball = [e for e in inner if axes.get(e) is None] or inner   # a hinge's centre is
         c = np.nanmean(np.stack([centres[e] for e in ball]), axis=0)   # arbitrary on its axis
-
-        def choose(group):
-            hubs = [h for h in sorted(group) if all(ok(h, m) for m in group if m != h)]
-            if not hubs:
-                return None
-            if is_hinge is not None:
-                n_hinge = [sum(bool(is_hinge(h, m)) for m in group if m != h) for h in hubs]
-                hubs = [h for h, n in zip(hubs, n_hinge) if n == max(n_hinge)]
-            spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
-                                   for m in group if m != h) for h in hubs])
-            star = np.array([sum(cost[h, m] for m in group if m != h) for h in hubs])
-            score = spread / spread.mean() if spread.mean() > 0 else np.zeros(len(hubs))
-            if np.isfinite(star).all() and star.mean() > 0:   # noise-free costs are all ~0
-                score = score + COST_WEIGHT * star / star.mean()
-            return hubs[int(np.argmin(score))]
-
         # Siblings linked among themselves leave their parent outside the group when their
         # fitted centres scatter (two-marker segments): a tree neighbour that fits a joint
         # with every member is a hub candidate too, and the group grows by it if it wins.
         hub = None
         for n in sorted({v for e in edges if len(e & grp) == 1 for v in e} - grp):
-            if all(ok(n, m) for m in grp) and choose(grp | {n}) == n:
+            if all(ok(n, m) for m in grp) and choose(grp | {n}, c) == n:
                 hub, grp = n, grp | {n}
                 inner = [e for e in edges if e <= grp]
                 break
-        hub = choose(grp) if hub is None else hub
+        hub = choose(grp, c) if hub is None else hub
         if hub is None:
-            continue
-        edges = (edges - set(inner)) | {frozenset((hub, m)) for m in grp if m != hub}
+            # No member explains the whole group: it chained distinct junctions (joints
+            # within ``tol`` of the next, not of each other). Its tighter groups are
+            # resolved instead.
+            if depth < SPLIT_DEPTH:
+                sub = [e for e in edges if e <= grp]
+                for g in junction_groups(sorted(tuple(sorted(e)) for e in sub), centres,
+                                         tol / 2, axes):
+                    edges = relink(edges, g, tol / 2, depth + 1)
+            return edges
+        return (edges - set(inner)) | {frozenset((hub, m)) for m in grp if m != hub}
+
+    for grp in junction_groups(sorted(tuple(sorted(e)) for e in edges), centres, tol_m,
+                               axes):
+        edges = relink(edges, grp, tol_m, 0)
     return np.array(sorted(tuple(sorted(e)) for e in edges), dtype=np.int64).reshape(-1, 2)

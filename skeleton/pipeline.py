@@ -6,9 +6,10 @@ variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every 
 (noise-normalised joint-fit residual; on 6 Hz low-passed data when the data is noisy),
 ``skeleton.topology`` (MST; pairs whose fit is a hinge within the noise are taken first),
 ``skeleton.junctions`` (segments meeting at one point re-linked around their hub), root =
-tree centre, then a refined joint fit per tree edge. Two-marker pairs are fitted in world
-coordinates from a closed-form start, re-searched from many starts where the tree could take
-them.
+tree centre, then a refined joint fit per tree edge. Segments without a usable frame (two
+markers, or markers within the noise of a line) are fitted in world coordinates from a
+closed-form start, re-searched from many starts where the tree could take them; their cheap
+pairs are then re-tested with an anchor joint completing their frame (``_falsify``).
 Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 
 from scipy.signal import butter, sosfiltfilt
 
-from skeleton.joints import JointFit, fit_joint, joint_cost
+from skeleton.joints import JointFit, fit_joint, frame_quality, joint_cost
 from skeleton.segments import segment_markers
 from skeleton.junctions import resolve_junctions
 from skeleton.topology import skeleton_tree, tree_from_edges
@@ -33,6 +34,11 @@ BROKEN_M = 0.02        # ... or above this (no fit: the closed-form start failed
                        # 30 held-out figures: 2 of 45 true 2+2 pairs scored 139 and 507 mm,
                        # 48 of 267 false ones > 20 mm)
 PRUNE = 0.9            # ... and the tree path between them has an edge above this x it
+POOR_FRAME = 3.0       # markers within this x the noise (distance sd) of a line: no frame
+ANCHOR = 1.5           # frameless segments' anchor joints: cost <= this x the noise floor
+ANCHOR_GAIN = 2.5      # ... and centre noise <= this x the marker noise
+FALSIFY_BELOW = 3.0    # pairs of a frameless segment costing below this x the floor are
+FALSIFY = 2.5          # re-tested with anchors; raised when the completed fit costs > this x
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
 HINGE_SURE = 1.5       # hinge pairs costing at most this x the median tree-edge cost: sure
 JUNCTION_K = 25.0      # tree joints closer than this x the within-segment distance sd: one
@@ -89,6 +95,74 @@ def _path_max(top, cost: np.ndarray, i: int, j: int) -> float:
     return max(worst, up[b])
 
 
+def _tree_floor(cost: np.ndarray) -> float:
+    """The median cost of the minimum spanning tree's edges (what a true joint scores)."""
+    return float(np.median(cost[tuple(skeleton_tree(cost).edges.T)]))
+
+
+def _point_noise_gain(ref_pts: np.ndarray, point: np.ndarray) -> float:
+    """RMS noise (per axis, in units of the marker noise) of a point fixed in the frame of
+    the reference markers ``ref_pts`` (N, 3) and carried by their pose (Kabsch: translation
+    variance 1/N, rotation covariance P^-1 with P the markers' inertia about their centroid,
+    times the lever arm)."""
+    q = ref_pts - ref_pts.mean(0)
+    P = (q**2).sum() * np.eye(3) - q.T @ q
+    lx = np.cross(np.eye(3), point - ref_pts.mean(0))
+    C = np.eye(3) / ref_pts.shape[0] + lx @ np.linalg.pinv(P) @ lx.T
+    return float(np.sqrt(np.trace(C) / 3))
+
+
+def _anchor_points(data, members, cost, floor, frameless) -> dict:
+    """For each frameless segment a: (p, J (T, 3)) - the joint with the cheapest segment p
+    that has a frame, costing at most ANCHOR x ``floor``, whose centre the pose of p
+    carries with noise at most ANCHOR_GAIN x the marker noise. J is a point fixed in a
+    (a joint within the noise): a third point for a's frame."""
+    anchors = {}
+    for a in np.flatnonzero(frameless):
+        for p in np.argsort(cost[a]):
+            if not cost[a, p] <= ANCHOR * floor:
+                break
+            if frameless[p]:
+                continue
+            f = fit_joint(data, members[p], members[a], ref=0)
+            seen = np.flatnonzero(~np.isnan(f.world).any(1))
+            if f.ok and seen.size and _point_noise_gain(
+                    data[seen[0], members[p]], f.world[seen[0]]) <= ANCHOR_GAIN:
+                anchors[int(a)] = (int(p), f.world)
+                break
+    return anchors
+
+
+def _falsify(data, members, cost, floor, frameless, upper, min_quality) -> int:
+    """Re-test the cheap pairs (cost below ``upper``) of frameless segments with the
+    segments' anchor points (``_anchor_points``) added as extra markers: a true joint is
+    still fixed in the segment's completed frame, a false one - free to turn about a
+    2-marker segment's line - no longer fits. A pair whose completed fit costs more than
+    FALSIFY x ``floor`` takes that cost (costs are only ever raised: the anchor point's
+    own noise adds to a true pair's cost, so completed costs are not compared otherwise).
+    Changes ``cost`` in place; returns the number of pairs raised."""
+    anchors = _anchor_points(data, members, cost, floor, frameless)
+    if not anchors:
+        return 0
+    M = data.shape[1]
+    order = sorted(anchors)
+    ext = np.concatenate([data] + [anchors[a][1][:, None] for a in order], 1)
+    col = {a: M + k for k, a in enumerate(order)}
+    raised = 0
+    for i, j in zip(*np.triu_indices(len(members), 1)):
+        if (i not in anchors and j not in anchors) or not cost[i, j] < upper:
+            continue
+        if anchors.get(i, (-1,))[0] == j or anchors.get(j, (-1,))[0] == i:
+            continue
+        mi = np.append(members[i], col[i]) if i in anchors else members[i]
+        mj = np.append(members[j], col[j]) if j in anchors else members[j]
+        c2 = joint_cost(ext, mi, mj, min_quality=min_quality)
+        if c2 > FALSIFY * floor and c2 > cost[i, j]:
+            cost[i, j] = cost[j, i] = c2
+            raised += 1
+    return raised
+
+
 @dataclass(frozen=True, kw_only=True)
 class SkeletonResult:
     """labels (M,) segment per marker; n_segments; eigengap_k; root; parents (S,);
@@ -127,12 +201,14 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     noise_m = float(np.median(seg.distance_sd[same])) if same.any() else 0.0
     noisy = noise_m > CLEAN_NOISE_M
     smooth = lowpass(traj, rate_hz, trim=True) if noisy else traj
+    min_q = (POOR_FRAME * noise_m) ** 2 if noisy else 0.0
     cost = np.full((S, S), np.inf)
     hinge = np.zeros((S, S), bool)
     radii = {}      # 2+2 pairs: the fit's marker-joint distances (a start for the final fit)
     for i in range(S):
         for j in range(i + 1, S):
-            pc = joint_cost(smooth, members[i], members[j], multistart=False, detail=True)
+            pc = joint_cost(smooth, members[i], members[j], multistart=False, detail=True,
+                            min_quality=min_q)
             cost[i, j] = cost[j, i] = pc.cost
             hinge[i, j] = hinge[j, i] = pc.hinge
             radii[i, j] = pc.radii
@@ -143,24 +219,27 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     # replacing the costliest edge on the tree path between its segments, and a true pair
     # costs no less than the noise floor.
     mst = skeleton_tree(cost)
-    floor = float(np.median(cost[tuple(mst.edges.T)]))
-    two = np.array([m.size == 2 for m in members])
+    floor = _tree_floor(cost)
+    frameless = np.array([frame_quality(smooth, m) <= min_q for m in members])
     for i, j in zip(*np.triu_indices(S, 1)):
         upper = RECHECK * floor if noisy else RECHECK_MIN_M
-        if (two[i] and two[j] and 1.2 * floor < cost[i, j]
+        if (frameless[i] and frameless[j] and 1.2 * floor < cost[i, j]
                 and (cost[i, j] < upper or cost[i, j] > BROKEN_M)
                 and _path_max(mst, cost, i, j) > PRUNE * floor):
-            pc = joint_cost(smooth, members[i], members[j], detail=True)
+            pc = joint_cost(smooth, members[i], members[j], detail=True, min_quality=min_q)
             if pc.cost < cost[i, j]:
                 cost[i, j] = cost[j, i] = pc.cost
                 radii[i, j] = pc.radii
                 mst = skeleton_tree(cost)
-    say(f"joint costs: {S * (S - 1) // 2} pairs")
+    floor = _tree_floor(cost)
+    raised = _falsify(smooth, members, cost, floor, frameless,
+                      FALSIFY_BELOW * floor if noisy else RECHECK_MIN_M, min_q)
+    say(f"joint costs: {S * (S - 1) // 2} pairs ({raised} raised by completed frames)")
     # A pair whose relative motion is a rotation about one axis, fitting within the noise,
     # is a true joint: between segments that are not neighbours the relative motion
     # composes two or more joints' rotations, which is one-axis only for hinges about one
     # common axis. Such pairs enter the tree first (the tree of the rest of the pairs).
-    floor = float(np.median(cost[tuple(skeleton_tree(cost).edges.T)]))
+    floor = _tree_floor(cost)
     sure = hinge & (cost <= HINGE_SURE * floor)
     top = skeleton_tree(cost, first=sure)
     T = traj.shape[0]
@@ -173,7 +252,8 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
             r = radii.get((min(p, s), max(p, s)))
             if r is not None and p > s:     # radii follow the markers' order: a's, then b's
                 r = np.concatenate([r[members[s].size:], r[:members[s].size]])
-            fits[p, s] = fit_joint(fit_data, members[p], members[s], noise_m=floor, radii=r)
+            fits[p, s] = fit_joint(fit_data, members[p], members[s], noise_m=floor, radii=r,
+                                   min_quality=min_q)
         return fits[p, s]
 
     # Segments meeting at one point (sibling joints within the joint-centre uncertainty):
@@ -186,7 +266,8 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
         edges = resolve_junctions(fit_data, members, top.edges, centres, cost,
                                   tol_m=JUNCTION_K * noise_m,
                                   max_cost=JUNCTION_COST * float(np.max(tree_cost)), axes=axes,
-                                  recost=lambda a, b: joint_cost(smooth, members[a], members[b]),
+                                  recost=lambda a, b: joint_cost(smooth, members[a], members[b],
+                                                                 min_quality=min_q),
                                   is_hinge=lambda a, b: fit(a, b).hinge)
         top = tree_from_edges(S, edges)
     say(f"topology: root segment {top.root}")

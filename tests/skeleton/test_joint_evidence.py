@@ -1,14 +1,16 @@
 """Evidence the topology uses beside the joint cost, vs hw_sim truth (fast): the statistical
 hinge test, hinge pairs taken first by the tree, the 2+2 multi-start search, the cycle
-pruning of rechecks, and the 3x3 inverse of the world-frame solver."""
+pruning of rechecks, the 3x3 inverse of the world-frame solver, cramped 3-marker frames
+fitted in world coordinates, and false pairs of frameless segments raised by anchor joints."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from hw_sim.articulated import animate, random_tree
-from skeleton.joints import HINGE_RATIO, _inv3_sym, fit_joint, joint_cost
-from skeleton.pipeline import HINGE_SURE, _path_max, lowpass
+from skeleton.joints import HINGE_RATIO, _inv3_sym, fit_joint, frame_quality, joint_cost
+from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, POOR_FRAME, _falsify, _path_max, _tree_floor,
+                               lowpass, solve_skeleton)
 from skeleton.topology import skeleton_tree
 
 NOISE_M = 1e-3
@@ -107,3 +109,72 @@ def test_inv3_sym_matches_lapack():
     A = np.random.default_rng(0).normal(size=(4, 6, 3, 3))
     A = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(3)
     np.testing.assert_allclose(_inv3_sym(A), np.linalg.inv(A), rtol=1e-10, atol=1e-12)
+
+
+def _noisy(seed):
+    """The figure, its members, the 1 mm noisy markers low-passed as for the topology costs
+    (trimmed), the frameless threshold of the pipeline (POOR_FRAME x the within-segment
+    distance sd) and the truth's edges."""
+    fig, mo, m, _ = _figure(seed)
+    noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, NOISE_M, mo.markers.shape)
+    sd = [np.nanstd(np.linalg.norm(noisy[:, i] - noisy[:, j], axis=1))
+          for s in m for k, i in enumerate(s) for j in s[k + 1:]]
+    min_q = (POOR_FRAME * float(np.median(sd))) ** 2
+    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
+    return fig, mo, m, noisy, lowpass(noisy, mo.rate_hz, trim=True), min_q, truth
+
+
+def _exact_topology(fig, mo, noisy, truth):
+    res = solve_skeleton(noisy, mo.rate_hz, rng=0)
+    labels = {frozenset(np.flatnonzero(res.labels == s).tolist()) for s in range(res.n_segments)}
+    segs = [frozenset(np.flatnonzero(fig.marker_segment == s).tolist())
+            for s in range(fig.n_segments)]
+    assert labels == set(segs)
+    seg_of = {int(np.flatnonzero(res.labels == s)[0]): s for s in range(res.n_segments)}
+    est_to_true = {s: int(fig.marker_segment[i]) for i, s in seg_of.items()}
+    est = {frozenset((est_to_true[s], est_to_true[int(res.parents[s])]))
+           for s in range(res.n_segments) if res.parents[s] >= 0}
+    return est == truth
+
+
+def test_cramped_three_marker_frame_is_fitted_in_world_coordinates():
+    """Seed 2036: segment 2's three markers lie within 20 mm, nearly on a line (frame quality
+    0.4 mm^2, i.e. 0.6 mm off the line, with 1 mm noise). Its frame's rotation about that
+    line is noise, and the frame fit scores its true joint with 2-marker segment 1 at ~9x the
+    noise floor, so the tree took a sibling instead. Below POOR_FRAME x the noise the pair is
+    fitted in world coordinates (one centre per frame), which scores it at the floor."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(2036)
+    assert fig.parents[2] == 1 and m[1].size == 2 and m[2].size == 3
+    assert 0 < frame_quality(smooth, m[2]) <= min_q
+    true_costs = [joint_cost(smooth, m[int(fig.parents[s])], m[s], min_quality=min_q)
+                  for s in range(1, fig.n_segments)]
+    floor = float(np.median(true_costs))
+    assert joint_cost(smooth, m[1], m[2]) > 5 * floor               # frame fit
+    assert joint_cost(smooth, m[1], m[2], min_quality=min_q) < 1.5 * floor
+    wf = fit_joint(lowpass(noisy, mo.rate_hz), m[1], m[2], min_quality=min_q)
+    assert wf.ref == -1                                              # world-frame fit
+    assert _exact_topology(fig, mo, noisy, truth)
+
+
+def test_false_two_marker_pair_raised_by_anchor_joints():
+    """Seed 4038: segments 3 and 7 (two markers each) are not neighbours (3 hangs from 1, 7
+    from 0), yet a point at constant distances from their four markers fits within the noise
+    (1.1x the floor), and the tree took it. Completed with their anchor joints (3's with 1, 7's
+    with 0: points fixed in each segment), no fixed point fits: the pair is raised above
+    FALSIFY x the floor, while no true pair of the figure is raised."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(4038)
+    assert m[3].size == m[7].size == 2 and frozenset((3, 7)) not in truth
+    S = fig.n_segments
+    cost = np.full((S, S), np.inf)
+    for i, j in [tuple(e) for e in truth] + [(3, 7)]:
+        cost[i, j] = cost[j, i] = joint_cost(smooth, m[i], m[j], min_quality=min_q)
+    floor = _tree_floor(cost)
+    assert cost[3, 7] < 1.5 * floor                     # the world-frame cost alone: a joint
+    before = cost.copy()
+    frameless = np.array([frame_quality(smooth, s) <= min_q for s in m])
+    raised = _falsify(smooth, m, cost, floor, frameless, FALSIFY_BELOW * floor, min_q)
+    assert raised >= 1 and cost[3, 7] > FALSIFY * floor
+    for e in truth:
+        i, j = tuple(e)
+        assert cost[i, j] == before[i, j], (i, j)
+    assert _exact_topology(fig, mo, noisy, truth)
