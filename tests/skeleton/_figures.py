@@ -15,6 +15,17 @@ def segment_map(fig, labels):
     return np.array(m) if len(set(m)) == fig.n_segments else None
 
 
+def exact_topology(fig, res) -> bool:
+    """Whether a ``SkeletonResult`` has the figure's segments and tree edges exactly."""
+    sm = segment_map(fig, res.labels)
+    if sm is None or res.n_segments != fig.n_segments:
+        return False
+    truth = {frozenset((int(sm[s]), int(sm[fig.parents[s]]))) for s in range(1, fig.n_segments)}
+    est = {frozenset((s, int(res.parents[s]))) for s in range(res.n_segments)
+           if res.parents[s] >= 0}
+    return est == truth
+
+
 def joint_errors(fig, motion, parents, joint_centres, segmap):
     """(T, S-1) distance between estimated and true joint centres (hinges: perpendicular
     to the axis); NaN where not estimated. ``joint_centres`` (T, S, 3) holds each estimated

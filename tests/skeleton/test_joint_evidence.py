@@ -12,6 +12,7 @@ from skeleton.joints import HINGE_RATIO, _inv3_sym, fit_joint, frame_quality, jo
 from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, POOR_FRAME, _falsify, _path_max, _tree_floor,
                                lowpass, solve_skeleton)
 from skeleton.topology import skeleton_tree
+from tests.skeleton._figures import exact_topology
 
 NOISE_M = 1e-3
 
@@ -124,19 +125,6 @@ def _noisy(seed):
     return fig, mo, m, noisy, lowpass(noisy, mo.rate_hz, trim=True), min_q, truth
 
 
-def _exact_topology(fig, mo, noisy, truth):
-    res = solve_skeleton(noisy, mo.rate_hz, rng=0)
-    labels = {frozenset(np.flatnonzero(res.labels == s).tolist()) for s in range(res.n_segments)}
-    segs = [frozenset(np.flatnonzero(fig.marker_segment == s).tolist())
-            for s in range(fig.n_segments)]
-    assert labels == set(segs)
-    seg_of = {int(np.flatnonzero(res.labels == s)[0]): s for s in range(res.n_segments)}
-    est_to_true = {s: int(fig.marker_segment[i]) for i, s in seg_of.items()}
-    est = {frozenset((est_to_true[s], est_to_true[int(res.parents[s])]))
-           for s in range(res.n_segments) if res.parents[s] >= 0}
-    return est == truth
-
-
 def test_cramped_three_marker_frame_is_fitted_in_world_coordinates():
     """Seed 2036: segment 2's three markers lie within 20 mm, nearly on a line (frame quality
     0.4 mm^2, i.e. 0.6 mm off the line, with 1 mm noise). Its frame's rotation about that
@@ -153,7 +141,7 @@ def test_cramped_three_marker_frame_is_fitted_in_world_coordinates():
     assert joint_cost(smooth, m[1], m[2], min_quality=min_q) < 1.5 * floor
     wf = fit_joint(lowpass(noisy, mo.rate_hz), m[1], m[2], min_quality=min_q)
     assert wf.ref == -1                                              # world-frame fit
-    assert _exact_topology(fig, mo, noisy, truth)
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
 
 
 def test_false_two_marker_pair_raised_by_anchor_joints():
@@ -177,4 +165,4 @@ def test_false_two_marker_pair_raised_by_anchor_joints():
     for e in truth:
         i, j = tuple(e)
         assert cost[i, j] == before[i, j], (i, j)
-    assert _exact_topology(fig, mo, noisy, truth)
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
