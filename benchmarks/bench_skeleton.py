@@ -1,10 +1,11 @@
 """Skeleton solver on random simulated figures: topology success, joint-centre error, time.
 
 Usage: python benchmarks/bench_skeleton.py [n_figures=50] [n_frames=600] [seed_bases=1000]
-(0 figures: only the largest case; seed_bases: comma-separated, e.g. 1000,2000,3000 - 1000
-is the acceptance set (the figures of tests/skeleton/test_random_figures.py), the others are
-held out: the solver's constants were chosen looking at 1000 and 2000, so 3000 is the honest
-estimate)
+(0 figures: only the largest case; seed_bases: comma-separated, e.g.
+1000,2000,3000,4000,5000,6000 - 1000 is the acceptance set (the figures of
+tests/skeleton/test_random_figures.py); the solver's constants were chosen looking at
+1000-4000; 5000 and 6000 were first looked at for the frameless-segment and anchor rules, so
+they are the least tuned estimate)
 Per noise level (none, 1 mm) prints: (a) topology exactly right (target >= 49/50);
 (b) topology kinematically equivalent to the truth (``topology_equivalent`` of
 tests/skeleton/_figures.py, with a tolerance of 3x the median joint-centre error measured in
