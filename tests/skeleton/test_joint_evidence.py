@@ -9,8 +9,8 @@ import pytest
 
 from hw_sim.articulated import animate, random_tree
 from skeleton.joints import HINGE_RATIO, _inv3_sym, fit_joint, frame_quality, joint_cost
-from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, POOR_FRAME, _falsify, _path_max, _tree_floor,
-                               lowpass, solve_skeleton)
+from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, POOR_FRAME, _Completed,
+                               _path_max, _tree_floor, lowpass, solve_skeleton)
 from skeleton.topology import skeleton_tree
 from tests.skeleton._figures import exact_topology
 
@@ -147,9 +147,9 @@ def test_cramped_three_marker_frame_is_fitted_in_world_coordinates():
 def test_false_two_marker_pair_raised_by_anchor_joints():
     """Seed 4038: segments 3 and 7 (two markers each) are not neighbours (3 hangs from 1, 7
     from 0), yet a point at constant distances from their four markers fits within the noise
-    (1.1x the floor), and the tree took it. Completed with their anchor joints (3's with 1, 7's
-    with 0: points fixed in each segment), no fixed point fits: the pair is raised above
-    FALSIFY x the floor, while no true pair of the figure is raised."""
+    (1.1x the floor), and the tree took it. With segment 3's frame completed by its anchor
+    joint (with its parent 1, a point fixed in 3), no fixed point fits: the pair is raised
+    above FALSIFY x the floor, while no true pair of the figure is raised."""
     fig, mo, m, noisy, smooth, min_q, truth = _noisy(4038)
     assert m[3].size == m[7].size == 2 and frozenset((3, 7)) not in truth
     S = fig.n_segments
@@ -160,8 +160,12 @@ def test_false_two_marker_pair_raised_by_anchor_joints():
     assert cost[3, 7] < 1.5 * floor                     # the world-frame cost alone: a joint
     before = cost.copy()
     frameless = np.array([frame_quality(smooth, s) <= min_q for s in m])
-    raised = _falsify(smooth, m, cost, floor, frameless, FALSIFY_BELOW * floor, min_q)
-    assert raised >= 1 and cost[3, 7] > FALSIFY * floor
+    completed = _Completed(smooth, m, cost, floor, frameless, min_q)
+    assert completed.anchors[3][0] == 1
+    for i, j in zip(*np.triu_indices(S, 1)):
+        if cost[i, j] < FALSIFY_BELOW * floor and completed.applies(i, j):
+            completed.raise_false(cost, i, j, floor)
+    assert completed.raised >= 1 and cost[3, 7] > FALSIFY * floor
     for e in truth:
         i, j = tuple(e)
         assert cost[i, j] == before[i, j], (i, j)
