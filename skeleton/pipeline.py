@@ -43,8 +43,9 @@ FALSIFY = 2.5          # re-tested with anchors; raised when the completed fit c
                        # (1 mm noise): the false pairs the tree took, at 1.0-1.1x the floor,
                        # complete to 12-58x; true pairs stay <= 1.5x when the anchor's gain
                        # is <= 2.5 (gains of 3-7 inflated them to 3-16x). Exact topology
-                       # over six seed sets: FALSIFY 2.5 291/300, 3.5 290/300; POOR_FRAME 3
-                       # 291, 5 289 (before: 284/300)
+                       # over six seed sets, before the junction split: FALSIFY 2.5 and 3.5
+                       # both 290/300, POOR_FRAME 5 289/300; with the split 291/300; before
+                       # these rules 284/300
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
 HINGE_SURE = 1.5       # hinge pairs costing at most this x the median tree-edge cost: sure
 JUNCTION_K = 25.0      # tree joints closer than this x the within-segment distance sd: one
