@@ -6,7 +6,9 @@ Usage: python benchmarks/bench_skeleton.py [n_figures=50] [n_frames=600] [seed_b
 tests/skeleton/test_random_figures.py); the solver's constants were chosen looking at
 1000-4000; 5000 and 6000 were first looked at for the frameless-segment and anchor rules, so
 they are the least tuned estimate)
-Per noise level (none, 1 mm) prints: (a) topology exactly right (target >= 49/50);
+Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
+with marker counts and, for siblings, how far apart their joints are), then: (a) topology
+exactly right (target >= 49/50);
 (b) topology kinematically equivalent to the truth (``topology_equivalent`` of
 tests/skeleton/_figures.py, with a tolerance of 3x the median joint-centre error measured in
 the same run: edges may differ only inside a group of coincident joints), reported next to
@@ -51,6 +53,30 @@ def run(fig, mo, noise_m, seed):
     return est == truth, errs, dt, res
 
 
+def failure(fig, res) -> str:
+    """One line on why a figure's topology is not exact: wrong segment count, or each
+    extra edge (truth's segment numbers) with the two segments' marker counts and their
+    relation - siblings: how far apart their joints sit on the parent."""
+    segmap = segment_map(fig, res.labels)
+    if segmap is None or res.n_segments != fig.n_segments:
+        return f"segments wrong (K={res.n_segments} vs {fig.n_segments})"
+    inv = np.empty(fig.n_segments, int)
+    inv[segmap] = np.arange(fig.n_segments)
+    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
+    est = {frozenset((int(inv[s]), int(inv[res.parents[s]]))) for s in range(res.n_segments)
+           if res.parents[s] >= 0}
+    nm = np.bincount(fig.marker_segment, minlength=fig.n_segments)
+    out = []
+    for e in sorted(sorted(e) for e in est - truth):
+        a, b = e
+        rel = "not siblings"
+        if fig.parents[a] == fig.parents[b]:
+            d = np.linalg.norm(fig.joint_offsets[a] - fig.joint_offsets[b])
+            rel = f"siblings, joints {d * 1e3:.1f} mm apart"
+        out.append(f"extra {a}-{b} ({nm[a]}+{nm[b]} markers, {rel})")
+    return "; ".join(out)
+
+
 def main(n_fig=50, n_frames=600, bases="1000"):
     for base, noise in [(int(b), n) for b in str(bases).split(",") for n in (0.0, 1e-3)
                         ] if n_fig > 0 else ():
@@ -60,6 +86,9 @@ def main(n_fig=50, n_frames=600, bases="1000"):
             fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
             mo = animate(fig, n_frames, rng=g, rom_deg=float(g.uniform(45, 90)))
             good, e, dt, res = run(fig, mo, noise, k)
+            if not good:
+                print(f"  seed {base + k}, noise {noise * 1e3:.0f} mm: {failure(fig, res)}",
+                      flush=True)
             ok += good
             errs += e
             times.append(dt)
