@@ -1,6 +1,7 @@
 """``mocap calibrate wand``: rig extrinsics from a waved wand / single point.
 
-INPUT is a 2D observation CSV (``frame,camera,x,y``) or a recording folder (its detections).
+INPUT is a 2D observation CSV (``frame,camera,x,y``) or a recording folder (its detections, or
+the blobs of its frames: ``reconstruct.app.load_detections``).
 Writes the calibration TOML (``calibration.rig_io.save_rig``) and a report (.txt + .png)
 beside it. ``mocap calibrate intrinsics IMAGES --board chessboard:COLSxROWS:SQUARE_MM``
 (inner corners) or ``--board charuco:COLSxROWS:SQUARE_MM:MARKER_MM[:DICT[:legacy]]``
@@ -18,26 +19,14 @@ from pathlib import Path
 from calibration.camera import Camera
 from calibration.rig_io import load_rig, save_rig
 from calibration.wand import calibrate_wand
-from capture.detections import read_detections_csv
-
-
-def _load_detections(path: Path, names=None):
-    if path.is_dir():
-        from capture.replay import read_recording_detections
-        det = read_recording_detections(path)
-        if det is None:
-            raise ValueError(f"{path}: recording has no detections file")
-        return det
-    return read_detections_csv(path, camera_names=names)
+from reconstruct.app import load_detections
 
 
 def _wand(args) -> int:
-    names = None
     rig0 = None
     if args.intrinsics:
         rig0 = load_rig(args.intrinsics)
-        names = rig0.names
-    det = _load_detections(Path(args.input), names)
+    det = load_detections(args.input, rig0)[0]
     if rig0 is not None:
         init = list(rig0)
     else:
@@ -146,7 +135,7 @@ def _world(args) -> int:
         return 2
     try:
         ref = None if args.floor else _reference(args)
-        det = _load_detections(Path(args.input), rig.names)
+        det = load_detections(args.input, rig)[0]
         sp = static_points(det, rig, gate_px=args.gate_px)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
