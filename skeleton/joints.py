@@ -62,6 +62,13 @@ def _fail(T, reason):
                     residual_m=np.inf, hinge=False, axis_local=n, sv_ratio=np.nan)
 
 
+def inertia(pts: np.ndarray) -> np.ndarray:
+    """(3, 3) inertia of points (N, 3) about their centroid: a Kabsch pose from them has
+    rotation covariance sigma^2 P^-1 (sigma: the points' noise)."""
+    q = pts - pts.mean(0)
+    return (q**2).sum() * np.eye(3) - q.T @ q
+
+
 def frame_quality(traj: np.ndarray, idx) -> float:
     """How well a segment's markers define a frame (m^2): the middle eigenvalue of their
     scatter about the centroid (how far they are from a line; a plane is enough), median
@@ -143,9 +150,7 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
     # thus has variance sigma^2 w, w = 1 + 1/n + (l x u)^T P^-1 (l x u) (l: lever from the
     # reference centroid, u: radial direction). Residuals are weighted by 1/sqrt(w), so the
     # normalised cost estimates sigma whatever the marker layout.
-    q = ref_pts - ref_pts.mean(0)
-    P = (q**2).sum() * np.eye(3) - q.T @ q
-    Pinv = np.linalg.pinv(P)
+    Pinv = np.linalg.pinv(inertia(ref_pts))
     lever = pts - ref_pts.mean(0)
     u0 = pts - c
     u0 /= np.maximum(np.linalg.norm(u0, axis=1, keepdims=True), 1e-12)

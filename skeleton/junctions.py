@@ -167,8 +167,7 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
             # within ``tol`` of the next, not of each other). Its tighter groups are
             # resolved instead.
             if depth < SPLIT_DEPTH:
-                sub = [e for e in edges if e <= grp]
-                for g in junction_groups(sorted(tuple(sorted(e)) for e in sub), centres,
+                for g in junction_groups(sorted(tuple(sorted(e)) for e in inner), centres,
                                          tol / 2, axes):
                     edges = relink(edges, g, tol / 2, depth + 1)
             return edges

@@ -20,7 +20,7 @@ import numpy as np
 
 from scipy.signal import butter, sosfiltfilt
 
-from skeleton.joints import JointFit, fit_joint, frame_quality, joint_cost
+from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_cost
 from skeleton.segments import segment_markers
 from skeleton.junctions import resolve_junctions
 from skeleton.topology import skeleton_tree, tree_from_edges
@@ -112,10 +112,8 @@ def _point_noise_gain(ref_pts: np.ndarray, point: np.ndarray) -> float:
     the reference markers ``ref_pts`` (N, 3) and carried by their pose (Kabsch: translation
     variance 1/N, rotation covariance P^-1 with P the markers' inertia about their centroid,
     times the lever arm)."""
-    q = ref_pts - ref_pts.mean(0)
-    P = (q**2).sum() * np.eye(3) - q.T @ q
     lx = np.cross(np.eye(3), point - ref_pts.mean(0))
-    C = np.eye(3) / ref_pts.shape[0] + lx @ np.linalg.pinv(P) @ lx.T
+    C = np.eye(3) / ref_pts.shape[0] + lx @ np.linalg.pinv(inertia(ref_pts)) @ lx.T
     return float(np.sqrt(np.trace(C) / 3))
 
 

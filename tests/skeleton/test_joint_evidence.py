@@ -11,6 +11,7 @@ from hw_sim.articulated import animate, random_tree
 from skeleton.joints import HINGE_RATIO, _inv3_sym, fit_joint, frame_quality, joint_cost
 from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, POOR_FRAME, _Completed,
                                _path_max, _tree_floor, lowpass, solve_skeleton)
+from skeleton.segments import distance_sd
 from skeleton.topology import skeleton_tree
 from tests.skeleton._figures import exact_topology
 
@@ -118,9 +119,10 @@ def _noisy(seed):
     distance sd) and the truth's edges."""
     fig, mo, m, _ = _figure(seed)
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, NOISE_M, mo.markers.shape)
-    sd = [np.nanstd(np.linalg.norm(noisy[:, i] - noisy[:, j], axis=1))
-          for s in m for k, i in enumerate(s) for j in s[k + 1:]]
-    min_q = (POOR_FRAME * float(np.median(sd))) ** 2
+    sd = distance_sd(noisy)
+    seg = fig.marker_segment
+    same = (seg[:, None] == seg[None]) & ~np.eye(seg.size, dtype=bool)
+    min_q = (POOR_FRAME * float(np.median(sd[same]))) ** 2
     truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
     return fig, mo, m, noisy, lowpass(noisy, mo.rate_hz, trim=True), min_q, truth
 
