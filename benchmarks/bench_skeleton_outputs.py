@@ -4,8 +4,8 @@ Usage: python benchmarks/bench_skeleton_outputs.py [n_figures=10] [n_frames=400]
 Per random tree (5-20 segments, 2-4 markers per segment, n_frames at 120 Hz):
 - marker sets: every trajectory cut at 1-3 random occlusions (3-40 frames) into new ids
   plus 5 ghosts; a figure counts as merged when every physical marker gets exactly one id
-  and no id mixes two markers (figures with two markers of one segment closer than 20 mm,
-  which hw_sim allows and no real marker set has, are counted apart);
+  and no id mixes two markers (figures with two markers of one segment closer than 20 mm
+  are counted apart: hw_sim placed such markers before its 20 mm default spacing);
 - fit back (1 mm noise and noise-free, true number of segments): median per-frame joint
   error (hinges perpendicular to the axis) of the closed-form fit, of the IK after it and
   of the solver's own per-frame estimate; mean marker deviation;

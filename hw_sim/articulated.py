@@ -30,6 +30,9 @@ __all__ = ["Figure", "Motion", "humanoid", "random_tree", "animate", "JOINT_TYPE
 JOINT_TYPES = ("ball", "hinge")
 ROOT_PATHS = ("loop", "fixed")
 MARKER_STANDOFF_M = 0.012  # marker centre above the skin (half a 14 mm marker + base)
+# Default smallest centre distance between two markers of one segment: a 14 mm body marker's
+# diameter plus the 6 mm its base needs. Closer 14 mm markers would overlap.
+MIN_MARKER_SPACING_M = 0.020
 
 
 def _rng(rng) -> np.random.Generator:
@@ -238,7 +241,7 @@ def _seg_dist(p: np.ndarray, cap: np.ndarray) -> float:
     return float(np.linalg.norm(p - a - u * ab))
 
 
-def _build(segs, g: np.random.Generator) -> Figure:
+def _build(segs, g: np.random.Generator, min_spacing_m: float = 0.0) -> Figure:
     # rest-pose origins (all segment frames parallel to the world)
     origin = []
     for name, parent, off, *_ in segs:
@@ -249,11 +252,13 @@ def _build(segs, g: np.random.Generator) -> Figure:
         fr = np.linspace(0.2, 0.9, nm) + g.uniform(-0.05, 0.05, nm)
         ang = np.arange(nm) * (2 * np.pi / max(nm, 3)) + g.uniform(-0.4, 0.4, nm) + 0.3 * s
         off = _surface_markers(cap, r, fr, ang)
-        for k in range(nm):  # keep markers outside the other segments' bodies at rest
-            for _ in range(60):
+        for k in range(nm):  # keep markers outside the other segments' bodies at rest,
+            for _ in range(60):  # and apart from this segment's other markers
                 p = origin[s] + off[k]
-                if all(_seg_dist(p, caps_rest[o]) > segs[o][6] + MARKER_STANDOFF_M
-                       for o in range(len(segs)) if o != s):
+                if (all(_seg_dist(p, caps_rest[o]) > segs[o][6] + MARKER_STANDOFF_M
+                        for o in range(len(segs)) if o != s)
+                        and all(np.linalg.norm(off[k] - off[j]) >= min_spacing_m
+                                for j in range(nm) if j != k)):
                     break
                 off[k] = _surface_markers(cap, r, g.uniform(0.1, 0.95, 1),
                                           g.uniform(0, 2 * np.pi, 1))[0]
@@ -273,19 +278,24 @@ def _build(segs, g: np.random.Generator) -> Figure:
 
 
 def random_tree(n_segments: int, markers_per_segment=(2, 4), rng=None, *,
-                hinge_fraction: float = 0.3) -> Figure:
+                hinge_fraction: float = 0.3,
+                min_marker_spacing_m: float = MIN_MARKER_SPACING_M) -> Figure:
     """A random tree of ``n_segments`` limb-like segments (0.2-0.4 m capsules).
 
     Each non-root segment hangs from a random earlier segment at 60-100 % of the parent's
     capsule; about ``hinge_fraction`` of the joints are hinges with a random axis
     perpendicular to the child's capsule. Each segment carries a random number of markers in
-    ``markers_per_segment`` (inclusive range).
+    ``markers_per_segment`` (inclusive range), placed on the capsule surface at least
+    ``min_marker_spacing_m`` apart (default: 14 mm body markers; hand-sized 6 mm markers
+    may sit 7 mm apart; 0 allows markers to overlap).
     """
     if not isinstance(n_segments, (int, np.integer)) or n_segments < 1:
         raise ValueError(f"n_segments={n_segments!r}, expected an int >= 1")
     lo, hi = markers_per_segment
     if not 1 <= lo <= hi:
         raise ValueError(f"markers_per_segment={markers_per_segment!r}, expected 1 <= lo <= hi")
+    if not 0.0 <= min_marker_spacing_m < 0.1:
+        raise ValueError(f"min_marker_spacing_m={min_marker_spacing_m!r}, expected 0 <= m < 0.1")
     g = _rng(rng)
     segs = []
     for s in range(n_segments):
@@ -308,7 +318,7 @@ def random_tree(n_segments: int, markers_per_segment=(2, 4), rng=None, *,
             segs.append((f"seg{s}", p, off, "hinge", axis, cap, r, nm))
         else:
             segs.append((f"seg{s}", p, off, "ball", np.full(3, np.nan), cap, r, nm))
-    return _build(segs, g)
+    return _build(segs, g, float(min_marker_spacing_m))
 
 
 def _smooth_signal(g: np.random.Generator, t_s: np.ndarray, n_sines: int = 3) -> np.ndarray:

@@ -161,8 +161,9 @@ def min_sibling_joint_distance(fig):
 
 
 def marker_spacing(fig) -> float:
-    """Smallest distance (m) between two markers of one segment (hw_sim's random_tree can put
-    them closer than a marker's diameter; the benchmarks count such figures apart)."""
+    """Smallest distance (m) between two markers of one segment (hw_sim's random_tree keeps
+    them ``min_marker_spacing_m`` apart, 20 mm by default; the benchmarks count figures
+    below 20 mm apart)."""
     d = np.inf
     for s in range(fig.n_segments):
         P = fig.marker_offsets[fig.marker_segment == s]

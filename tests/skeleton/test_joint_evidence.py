@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hw_sim.articulated import animate, random_tree
+from hw_sim.articulated import MIN_MARKER_SPACING_M, animate, random_tree
 from skeleton.joints import HINGE_RATIO, _inv3_sym, fit_joint, frame_quality, joint_cost
 from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, POOR_FRAME, _Completed,
                                _path_max, _tree_floor, lowpass, solve_skeleton)
@@ -18,9 +18,9 @@ from tests.skeleton._figures import exact_topology
 NOISE_M = 1e-3
 
 
-def _figure(seed):
+def _figure(seed, spacing_m=MIN_MARKER_SPACING_M):
     g = np.random.default_rng(seed)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
+    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g, min_marker_spacing_m=spacing_m)
     mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
     members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, NOISE_M, mo.markers.shape)
@@ -29,7 +29,7 @@ def _figure(seed):
 
 @pytest.mark.parametrize("seed,parent,child", [(1015, 1, 6), (1015, 1, 2), (1017, 2, 10)])
 def test_noisy_hinge_detected_where_the_ratio_test_misses_it(seed, parent, child):
-    """True hinges whose reference frame is cramped (markers 10-40 mm apart): with 1 mm
+    """True hinges whose reference frame is cramped (two markers 20-22 mm apart): with 1 mm
     noise (6 Hz low-passed) the singular-value ratio is far above HINGE_RATIO, but the
     out-of-plane motion is within its propagated noise."""
     fig, mo, m, lp = _figure(seed)
@@ -113,11 +113,11 @@ def test_inv3_sym_matches_lapack():
     np.testing.assert_allclose(_inv3_sym(A), np.linalg.inv(A), rtol=1e-10, atol=1e-12)
 
 
-def _noisy(seed):
+def _noisy(seed, spacing_m=MIN_MARKER_SPACING_M):
     """The figure, its members, the 1 mm noisy markers low-passed as for the topology costs
     (trimmed), the frameless threshold of the pipeline (POOR_FRAME x the within-segment
     distance sd) and the truth's edges."""
-    fig, mo, m, _ = _figure(seed)
+    fig, mo, m, _ = _figure(seed, spacing_m)
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, NOISE_M, mo.markers.shape)
     sd = distance_sd(noisy)
     seg = fig.marker_segment
@@ -128,12 +128,14 @@ def _noisy(seed):
 
 
 def test_cramped_three_marker_frame_is_fitted_in_world_coordinates():
-    """Seed 2036: segment 2's three markers lie within 20 mm, nearly on a line (frame quality
-    0.4 mm^2, i.e. 0.6 mm off the line, with 1 mm noise). Its frame's rotation about that
-    line is noise, and the frame fit scores its true joint with 2-marker segment 1 at ~9x the
-    noise floor, so the tree took a sibling instead. Below POOR_FRAME x the noise the pair is
-    fitted in world coordinates (one centre per frame), which scores it at the floor."""
-    fig, mo, m, noisy, smooth, min_q, truth = _noisy(2036)
+    """Seed 2036 with hand-sized markers (6 mm, at least 7 mm apart): segment 2's three
+    markers lie within 20 mm, nearly on a line (frame quality 0.4 mm^2, i.e. 0.6 mm off the
+    line, with 1 mm noise). Its frame's rotation about that line is noise, and the frame fit
+    scores its true joint with 2-marker segment 1 at ~9x the noise floor, so the tree took a
+    sibling instead. Below POOR_FRAME x the noise the pair is fitted in world coordinates
+    (one centre per frame), which scores it at the floor. (With 14 mm body markers 20 mm
+    apart, no segment of seed sets 1000-6000 is this cramped.)"""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(2036, spacing_m=0.007)
     assert fig.parents[2] == 1 and m[1].size == 2 and m[2].size == 3
     assert 0 < frame_quality(smooth, m[2]) <= min_q
     true_costs = [joint_cost(smooth, m[int(fig.parents[s])], m[s], min_quality=min_q)
