@@ -6,11 +6,14 @@ Figures k in [first, last), exactly as bench_skeleton_outputs.py's marker-set pa
 tree (5-20 segments, 2-4 markers per segment, seed 1000 + k, 60 deg range of motion), 1 mm
 noise, every trajectory cut at 1-3 occlusions of 3-40 frames into new ids plus 5 ghosts. A
 figure is merged when every physical marker gets exactly one id and no id mixes two
-markers. Counts per block of 40 figures: all, physical (two markers of one segment >= 20 mm
-apart, as in real marker sets) and the rest (hw_sim placed two markers of one segment
-closer than 20 mm, which 14 mm markers cannot be), never dropped. Merge time: the sum over
-the figures, and its ratio to the merge without the repair (``repair_swaps=False``, the
-previous algorithm).
+markers. Counts per block of 40 figures: all, physical (every two markers of one segment
+>= 20 mm apart, as in real marker sets: 14 mm markers cannot be closer) and the rest, never
+dropped. Since commit 70ca108 hw_sim's random_tree keeps a segment's markers
+``min_marker_spacing_m`` (20 mm by default) apart, so the rest is empty unless figures are
+built with a smaller ``min_marker_spacing_m``, up to a rare figure where random_tree gave up
+placing a marker after 60 draws (of figures 0-119 only figure 59, 7.8 mm). Merge time: the
+sum over the figures, and its ratio to the merge without the repair (``repair_swaps=False``:
+steps 1-3 of skeleton/markersets.py only).
 """
 from __future__ import annotations
 

@@ -123,6 +123,66 @@ def test_swapped_markers_of_one_segment_are_repaired(k):
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
+@pytest.mark.parametrize("k", [48, 92])
+def test_swapped_markers_of_a_two_marker_segment_are_repaired(k):
+    """Benchmark figures 48 and 92: two markers of a segment with only those two markers
+    come back exchanged after a common gap (no other marker of the segment to align on or
+    to judge rigidity with). The repair by segment partners cannot see it; the turning of
+    the pair's direction across the fragment changes (a swap flips it) undoes it."""
+    from skeleton.markersets import _repair_swaps
+    fig, mo, X, owner = _bench_figure(k)
+    before = merge_fragments(X, repair_swaps=False)
+    mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
+    assert len(mixed) == 2                      # the failure this test guards against ...
+    a, b = ({int(owner[f]) for f in g} for g in mixed)
+    seg = {int(fig.marker_segment[m]) for m in a}
+    assert a == b and len(seg) == 1 and (fig.marker_segment == seg.pop()).sum() == 2
+    # ... which the partner rule alone leaves as it is
+    kept = _repair_swaps(X, [list(g) for g in before.groups], MIN_FRAMES, 1.0,
+                         turn_margin=np.inf)
+    assert sum(len({int(owner[f]) for f in g}) > 1 for g in kept) == 2
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+@pytest.mark.parametrize("k", [16, 79])
+def test_marker_split_beside_a_swap_merges_after_the_repair(k):
+    """Benchmark figures 16 and 79: the repair undoes a swap but leaves one marker as two
+    ids (the swapped marker overlapped its other piece, so the linkage could not join
+    them); merging again after the repair joins them."""
+    from skeleton.markersets import _repair_swaps
+    fig, mo, X, owner = _bench_figure(k)
+    before = merge_fragments(X, repair_swaps=False)
+    repaired = _repair_swaps(X, [list(g) for g in before.groups], MIN_FRAMES, 1.0)
+    assert all(len({int(owner[f]) for f in g}) == 1 for g in repaired)     # pure ...
+    assert len(repaired) == fig.n_markers + 1                   # ... but one id too many
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+def test_planted_swap_of_a_two_marker_segment_is_repaired():
+    """As below, on a segment with exactly two markers (no segment partners): the turning
+    rule restores the truth exactly."""
+    from skeleton.markersets import _repair_swaps
+    for k in range(40, 140):
+        fig = random_tree(10, (2, 4), rng=k)
+        two = np.flatnonzero(np.bincount(fig.marker_segment) == 2)
+        if marker_spacing(fig) >= MIN_SPACING_M and two.size:
+            break
+    mo = animate(fig, 400, rng=k)
+    X = mo.markers + np.random.default_rng(k).normal(0, NOISE_M, mo.markers.shape)
+    m0, m1 = np.flatnonzero(fig.marker_segment == two[0])
+    X[190:200, [m0, m1]] = np.nan
+    X = np.concatenate([X[:, :, None], np.full_like(X[:, :, None], np.nan)], 2)
+    X[200:, :, 1], X[200:, :, 0] = X[200:, :, 0], np.nan
+    X = X.reshape(400, -1, 3)
+    truth = [[2 * m, 2 * m + 1] for m in range(fig.n_markers)]
+    planted = [list(g) for g in truth]
+    planted[m0][1], planted[m1][1] = 2 * m1 + 1, 2 * m0 + 1
+    assert _repair_swaps(X, [list(g) for g in planted], MIN_FRAMES, 1.0,
+                         turn_margin=np.inf) == planted          # the partner rule alone
+    repaired = _repair_swaps(X, planted, MIN_FRAMES, 1.0)
+    assert sorted(sorted(int(f) for f in g) for g in repaired) == truth
+
+
 def test_planted_swap_is_repaired():
     """Correct groups with the fragments of two markers of one segment exchanged after a
     common gap: the repair restores the truth exactly (up to the order of the ids)."""
