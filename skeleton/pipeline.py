@@ -9,7 +9,8 @@ variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every 
 tree centre, then a refined joint fit per tree edge. Segments without a usable frame (two
 markers, or markers within the noise of a line) are fitted in world coordinates from a
 closed-form start, re-searched from many starts where the tree could take them; their cheap
-pairs are then re-tested with an anchor joint completing their frame (``_Completed``).
+pairs are then re-tested with an anchor joint completing their frame (``_Completed``; a
+completed segment lends its frame on down a chain of 2-marker segments).
 Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
@@ -45,7 +46,8 @@ FALSIFY = 2.5          # re-tested with anchors; raised when the completed fit c
                        # is <= 2.5 (gains of 3-7 inflated them to 3-16x). Exact topology
                        # over six seed sets, before the junction split: FALSIFY 2.5 and 3.5
                        # both 290/300, POOR_FRAME 5 289/300; with the split 291/300; before
-                       # these rules 284/300
+                       # these rules 284/300. With hw_sim's 20 mm marker spacing (70ca108):
+                       # 293/300, with anchors chained through completed segments 294/300
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
 HINGE_SURE = 1.5       # hinge pairs costing at most this x the median tree-edge cost: sure
 JUNCTION_K = 25.0      # tree joints closer than this x the within-segment distance sd: one
@@ -117,25 +119,41 @@ def _point_noise_gain(ref_pts: np.ndarray, point: np.ndarray) -> float:
     return float(np.sqrt(np.trace(C) / 3))
 
 
-def _anchor_points(data, members, cost, floor, frameless) -> dict:
+def _anchor_points(data, members, cost, floor, frameless) -> tuple[dict, np.ndarray, dict]:
     """For each frameless segment a: (p, J (T, 3)) - the joint with the cheapest segment p
     that has a frame, costing at most ANCHOR x ``floor``, whose centre the pose of p
     carries with noise at most ANCHOR_GAIN x the marker noise. J is a point fixed in a
-    (a joint within the noise): a third point for a's frame."""
-    anchors = {}
-    for a in np.flatnonzero(frameless):
-        for p in np.argsort(cost[a]):
-            if not cost[a, p] <= ANCHOR * floor:
-                break
-            if frameless[p]:
-                continue
-            f = fit_joint(data, members[p], members[a], ref=0)
-            seen = np.flatnonzero(~np.isnan(f.world).any(1))
-            if f.ok and seen.size and _point_noise_gain(
-                    data[seen[0], members[p]], f.world[seen[0]]) <= ANCHOR_GAIN:
-                anchors[int(a)] = (int(p), f.world)
-                break
-    return anchors
+    (a joint within the noise): a third point for a's frame. In rounds: a segment completed
+    by its anchor lends its completed frame (markers + anchor) to its frameless neighbours
+    in the next round (a chain of 2-marker segments hanging from a framed one). (Tried:
+    waiting for a cheaper frameless neighbour to be completed first - it anchored the
+    largest benchmark case's segment 7 on its false sibling 4.)
+    Returns the anchors, the data with the anchor points appended as extra markers, and
+    each completed segment's column in it."""
+    anchors, cols, ext = {}, {}, data
+    has_frame = ~np.asarray(frameless, bool)
+    while True:
+        new = {}
+        for a in np.flatnonzero(~has_frame):
+            for p in np.argsort(cost[a]):
+                if not cost[a, p] <= ANCHOR * floor:
+                    break
+                if not has_frame[p]:
+                    continue
+                ref = members[p] if p not in cols else np.append(members[p], cols[p])
+                f = fit_joint(ext, ref, members[a], ref=0)
+                seen = np.flatnonzero(~np.isnan(f.world).any(1))
+                if f.ok and seen.size and _point_noise_gain(
+                        ext[seen[0], ref], f.world[seen[0]]) <= ANCHOR_GAIN:
+                    new[int(a)] = (int(p), f.world)
+                    break
+        if not new:
+            return anchors, ext, cols
+        for a in sorted(new):
+            cols[a] = ext.shape[1]
+            ext = np.concatenate([ext, new[a][1][:, None]], 1)
+            has_frame[a] = True
+        anchors.update(new)
 
 
 class _Completed:
@@ -147,12 +165,9 @@ class _Completed:
     adds to a true pair's cost, so completed costs are not compared otherwise)."""
 
     def __init__(self, data, members, cost, floor, frameless, min_quality):
-        self.anchors = _anchor_points(data, members, cost, floor, frameless)
+        self.anchors, self.ext, self.col = _anchor_points(data, members, cost, floor,
+                                                          frameless)
         self.members, self.min_quality, self.raised = members, min_quality, 0
-        M = data.shape[1]
-        order = sorted(self.anchors)
-        self.ext = np.concatenate([data] + [self.anchors[a][1][:, None] for a in order], 1)
-        self.col = {a: M + k for k, a in enumerate(order)}
         self.costs: dict[tuple, float] = {}
 
     def applies(self, i, j) -> bool:

@@ -174,3 +174,46 @@ def test_false_two_marker_pair_raised_by_anchor_joints():
         i, j = tuple(e)
         assert cost[i, j] == before[i, j], (i, j)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
+def test_chained_anchors_raise_a_false_pair_below_a_two_marker_parent():
+    """The benchmark's largest case (bench_skeleton.py: 31 markers, 13 segments, 1500
+    frames, 1 mm noise). Segments 4 and 7 (two markers each, hinges 55.7 mm apart) hang from
+    3 (two markers), which hangs from 2 (two markers), which hangs from 0. The false pair
+    4-7 costs the floor, and none of 3, 4, 7 has a framed neighbour: only a chain completes
+    them (2 by its joint with 3-marker segment 8, then 3 by its joint with completed 2, then
+    4 and 7 by theirs with completed 3). Completed, 4-7 no longer fits; no true pair is
+    raised."""
+    g = np.random.default_rng(7)
+    while True:
+        fig = random_tree(13, (2, 3), rng=g)
+        if fig.n_markers == 31:
+            break
+    mo = animate(fig, 1500, rng=g)
+    noisy = mo.markers + np.random.default_rng(0).normal(0, NOISE_M, mo.markers.shape)
+    smooth = lowpass(noisy, mo.rate_hz, trim=True)
+    m = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
+    sd = distance_sd(noisy)
+    same = (fig.marker_segment[:, None] == fig.marker_segment[None]) & ~np.eye(31, dtype=bool)
+    min_q = (POOR_FRAME * float(np.median(sd[same]))) ** 2
+    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
+    assert [int(fig.parents[s]) for s in (3, 4, 7)] == [2, 3, 3]
+    assert all(m[s].size == 2 for s in (2, 3, 4, 7)) and frozenset((4, 7)) not in truth
+    S = fig.n_segments
+    cost = np.full((S, S), np.inf)
+    for i, j in [tuple(e) for e in truth] + [(4, 7)]:
+        cost[i, j] = cost[j, i] = joint_cost(smooth, m[i], m[j], min_quality=min_q)
+    floor = _tree_floor(cost)
+    assert cost[4, 7] < 1.2 * floor                     # the world-frame cost alone: a joint
+    before = cost.copy()
+    frameless = np.array([frame_quality(smooth, s) <= min_q for s in m])
+    completed = _Completed(smooth, m, cost, floor, frameless, min_q)
+    assert {s: completed.anchors[s][0] for s in (2, 3, 4, 7)} == {2: 8, 3: 2, 4: 3, 7: 3}
+    for i, j in zip(*np.triu_indices(S, 1)):
+        if cost[i, j] < FALSIFY_BELOW * floor and completed.applies(i, j):
+            completed.raise_false(cost, i, j, floor)
+    assert cost[4, 7] > FALSIFY * floor
+    for e in truth:
+        i, j = tuple(e)
+        assert cost[i, j] == before[i, j], (i, j)
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
