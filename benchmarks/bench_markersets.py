@@ -10,8 +10,8 @@ markers. Counts per block of 40 figures: all, physical (every two markers of one
 >= 20 mm apart, as in real marker sets: 14 mm markers cannot be closer) and the rest, never
 dropped. Since commit 70ca108 hw_sim's random_tree keeps a segment's markers
 ``min_marker_spacing_m`` (20 mm by default) apart, so the rest is empty unless figures are
-built with a smaller ``min_marker_spacing_m``, up to a rare figure where random_tree gave up
-placing a marker after 60 draws (of figures 0-119 only figure 59, 7.8 mm). Merge time: the
+built with a smaller ``min_marker_spacing_m`` (random_tree takes up to 400 draws per marker;
+with 60, figure 59 kept two markers 7.8 mm apart). Merge time: the
 sum over the figures, and its ratio to the merge without the repair (``repair_swaps=False``:
 steps 1-3 of skeleton/markersets.py only).
 """

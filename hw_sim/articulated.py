@@ -253,7 +253,7 @@ def _build(segs, g: np.random.Generator, min_spacing_m: float = 0.0) -> Figure:
         ang = np.arange(nm) * (2 * np.pi / max(nm, 3)) + g.uniform(-0.4, 0.4, nm) + 0.3 * s
         off = _surface_markers(cap, r, fr, ang)
         for k in range(nm):  # keep markers outside the other segments' bodies at rest,
-            for _ in range(60):  # and apart from this segment's other markers
+            for _ in range(400):  # and apart from this segment's other markers
                 p = origin[s] + off[k]
                 if (all(_seg_dist(p, caps_rest[o]) > segs[o][6] + MARKER_STANDOFF_M
                         for o in range(len(segs)) if o != s)
