@@ -176,15 +176,16 @@ class _Completed:
                 and an.get(j, (-1,))[0] != i)
 
     def raise_false(self, cost, i, j, floor) -> bool:
-        """Whether the pair's completed fit costs > FALSIFY x ``floor``; then ``cost`` (in
-        place) takes it (when higher)."""
+        """Whether the pair's completed fit costs > FALSIFY x ``floor`` (x CLEAN_NOISE_M
+        at least: clean data is treated as noisy at that level); then ``cost`` (in place)
+        takes it (when higher)."""
         if (i, j) not in self.costs:
             mi, mj = self.members[i], self.members[j]
             mi = np.append(mi, self.col[i]) if i in self.anchors else mi
             mj = np.append(mj, self.col[j]) if j in self.anchors else mj
             self.costs[i, j] = joint_cost(self.ext, mi, mj, min_quality=self.min_quality)
         c2 = self.costs[i, j]
-        if not c2 > FALSIFY * floor:
+        if not c2 > FALSIFY * max(floor, CLEAN_NOISE_M):
             return False
         if c2 > cost[i, j]:
             cost[i, j] = cost[j, i] = c2
@@ -257,9 +258,10 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                 and (cost[i, j] < upper or cost[i, j] > BROKEN_M)
                 and _path_max(mst, cost, i, j) > PRUNE * floor):
             # a pair its completed frame rejects needs no search (the search only lowers
-            # costs). Not on noise-free data, where the floor is ~1e-7 m: there it rejected
-            # true pairs (exact topology 49, 47, 49 of 50 on seed sets 2000/3000/6000)
-            if noisy and completed.applies(i, j) and completed.raise_false(cost, i, j, floor):
+            # costs). On noise-free data the floor is ~1e-7 m: rejecting above FALSIFY x
+            # that rejected true pairs (exact topology 49, 47, 49 of 50 on seed sets
+            # 2000/3000/6000), so clean data is rejected above FALSIFY x CLEAN_NOISE_M
+            if completed.applies(i, j) and completed.raise_false(cost, i, j, floor):
                 mst = skeleton_tree(cost)
                 continue
             pc = joint_cost(smooth, members[i], members[j], detail=True, min_quality=min_q)
