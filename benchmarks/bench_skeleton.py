@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hw_sim.articulated import animate, random_tree  # noqa: E402
 from skeleton.pipeline import solve_skeleton  # noqa: E402
-from tests.skeleton._figures import (min_sibling_joint_distance,  # noqa: E402
+from tests.skeleton._figures import (largest_case, min_sibling_joint_distance,  # noqa: E402
                                      segment_map, solver_joint_errors, topology_equivalent)
 
 THESIS_LARGEST_S = 70.0
@@ -104,12 +104,7 @@ def main(n_fig=50, n_frames=600, bases="1000"):
               f"{close}/{n_fig}; median joint error {med * 1e3:.4f} mm (p90 "
               f"{np.percentile(errs, 90) * 1e3 if errs else float('nan'):.3f} mm); "
               f"{np.mean(times):.2f} s/figure", flush=True)
-    g = np.random.default_rng(7)
-    while True:
-        fig = random_tree(13, (2, 3), rng=g)
-        if fig.n_markers == 31:
-            break
-    mo = animate(fig, 1500, rng=g)
+    fig, mo = largest_case()
     for noise in (0.0, 1e-3):
         cpu0 = time.process_time()
         runs = [run(fig, mo, noise, 0) for _ in range(3)]

@@ -170,3 +170,15 @@ def marker_spacing(fig) -> float:
         D = np.linalg.norm(P[:, None] - P[None], axis=2) + np.eye(len(P)) * 1e9
         d = min(d, D.min())
     return d
+
+
+def largest_case():
+    """The thesis' largest simulated case as benchmarks/bench_skeleton.py builds it: the
+    first random_tree(13 segments, 2-3 markers) from default_rng(7) with 31 markers, and
+    its 1500-frame motion (120 Hz). Returns (figure, motion)."""
+    from hw_sim.articulated import animate, random_tree
+    g = np.random.default_rng(7)
+    while True:
+        fig = random_tree(13, (2, 3), rng=g)
+        if fig.n_markers == 31:
+            return fig, animate(fig, 1500, rng=g)

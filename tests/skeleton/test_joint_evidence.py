@@ -13,7 +13,7 @@ from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, POOR_FRAME, _
                                _path_max, _tree_floor, lowpass, solve_skeleton)
 from skeleton.segments import distance_sd
 from skeleton.topology import skeleton_tree
-from tests.skeleton._figures import exact_topology
+from tests.skeleton._figures import exact_topology, largest_case
 
 NOISE_M = 1e-3
 
@@ -156,24 +156,32 @@ def test_false_two_marker_pair_raised_by_anchor_joints():
     above FALSIFY x the floor, while no true pair of the figure is raised."""
     fig, mo, m, noisy, smooth, min_q, truth = _noisy(4038)
     assert m[3].size == m[7].size == 2 and frozenset((3, 7)) not in truth
-    S = fig.n_segments
-    cost = np.full((S, S), np.inf)
-    for i, j in [tuple(e) for e in truth] + [(3, 7)]:
-        cost[i, j] = cost[j, i] = joint_cost(smooth, m[i], m[j], min_quality=min_q)
-    floor = _tree_floor(cost)
-    assert cost[3, 7] < 1.5 * floor                     # the world-frame cost alone: a joint
-    before = cost.copy()
-    frameless = np.array([frame_quality(smooth, s) <= min_q for s in m])
-    completed = _Completed(smooth, m, cost, floor, frameless, min_q)
+    before, cost, floor, completed = _completed_costs(smooth, m, truth, (3, 7), min_q)
+    assert before[3, 7] < 1.5 * floor                   # the world-frame cost alone: a joint
     assert completed.anchors[3][0] == 1
-    for i, j in zip(*np.triu_indices(S, 1)):
-        if cost[i, j] < FALSIFY_BELOW * floor and completed.applies(i, j):
-            completed.raise_false(cost, i, j, floor)
     assert completed.raised >= 1 and cost[3, 7] > FALSIFY * floor
     for e in truth:
         i, j = tuple(e)
         assert cost[i, j] == before[i, j], (i, j)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
+def _completed_costs(smooth, m, truth, false_pair, min_q):
+    """The pipeline's cost matrix reduced to the true pairs and ``false_pair`` (before),
+    then the same after the completed frames' re-test (cost), with the floor and the
+    ``_Completed``."""
+    S = len(m)
+    cost = np.full((S, S), np.inf)
+    for i, j in [tuple(e) for e in truth] + [false_pair]:
+        cost[i, j] = cost[j, i] = joint_cost(smooth, m[i], m[j], min_quality=min_q)
+    floor = _tree_floor(cost)
+    before = cost.copy()
+    frameless = np.array([frame_quality(smooth, s) <= min_q for s in m])
+    completed = _Completed(smooth, m, cost, floor, frameless, min_q)
+    for i, j in zip(*np.triu_indices(S, 1)):
+        if cost[i, j] < FALSIFY_BELOW * floor and completed.applies(i, j):
+            completed.raise_false(cost, i, j, floor)
+    return before, cost, floor, completed
 
 
 def test_chained_anchors_raise_a_false_pair_below_a_two_marker_parent():
@@ -184,12 +192,7 @@ def test_chained_anchors_raise_a_false_pair_below_a_two_marker_parent():
     them (2 by its joint with 3-marker segment 8, then 3 by its joint with completed 2, then
     4 and 7 by theirs with completed 3). Completed, 4-7 no longer fits; no true pair is
     raised."""
-    g = np.random.default_rng(7)
-    while True:
-        fig = random_tree(13, (2, 3), rng=g)
-        if fig.n_markers == 31:
-            break
-    mo = animate(fig, 1500, rng=g)
+    fig, mo = largest_case()
     noisy = mo.markers + np.random.default_rng(0).normal(0, NOISE_M, mo.markers.shape)
     smooth = lowpass(noisy, mo.rate_hz, trim=True)
     m = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
@@ -199,19 +202,9 @@ def test_chained_anchors_raise_a_false_pair_below_a_two_marker_parent():
     truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
     assert [int(fig.parents[s]) for s in (3, 4, 7)] == [2, 3, 3]
     assert all(m[s].size == 2 for s in (2, 3, 4, 7)) and frozenset((4, 7)) not in truth
-    S = fig.n_segments
-    cost = np.full((S, S), np.inf)
-    for i, j in [tuple(e) for e in truth] + [(4, 7)]:
-        cost[i, j] = cost[j, i] = joint_cost(smooth, m[i], m[j], min_quality=min_q)
-    floor = _tree_floor(cost)
-    assert cost[4, 7] < 1.2 * floor                     # the world-frame cost alone: a joint
-    before = cost.copy()
-    frameless = np.array([frame_quality(smooth, s) <= min_q for s in m])
-    completed = _Completed(smooth, m, cost, floor, frameless, min_q)
+    before, cost, floor, completed = _completed_costs(smooth, m, truth, (4, 7), min_q)
+    assert before[4, 7] < 1.2 * floor                   # the world-frame cost alone: a joint
     assert {s: completed.anchors[s][0] for s in (2, 3, 4, 7)} == {2: 8, 3: 2, 4: 3, 7: 3}
-    for i, j in zip(*np.triu_indices(S, 1)):
-        if cost[i, j] < FALSIFY_BELOW * floor and completed.applies(i, j):
-            completed.raise_false(cost, i, j, floor)
     assert cost[4, 7] > FALSIFY * floor
     for e in truth:
         i, j = tuple(e)
