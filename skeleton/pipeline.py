@@ -47,7 +47,8 @@ FALSIFY = 2.5          # re-tested with anchors; raised when the completed fit c
                        # over six seed sets, before the junction split: FALSIFY 2.5 and 3.5
                        # both 290/300, POOR_FRAME 5 289/300; with the split 291/300; before
                        # these rules 284/300. With hw_sim's 20 mm marker spacing (70ca108):
-                       # 293/300, with anchors chained through completed segments 294/300
+                       # 293/300, with anchors chained through completed segments 294/300;
+                       # with 400 draws per marker (90200a6, 14 figures re-rolled) 293/300
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
 HINGE_SURE = 1.5       # hinge pairs costing at most this x the median tree-edge cost: sure
 JUNCTION_K = 25.0      # tree joints closer than this x the within-segment distance sd: one
