@@ -24,6 +24,13 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    the distance is below ``max_distance_m``, never merging clusters seen in the same frame
    (the cannot-link constraint a spectral clustering cannot guarantee), and never below the
    thesis' lower bound on the number of markers (the most fragments seen in one frame).
+   Motion continuity adds candidates the pose alignment misses (a segment with two markers,
+   or with its partners hidden, leaves the pose free): a pair is also a candidate, at key
+   ``miss`` plus the gap term, when at every change from one to the other (gaps of at most
+   ``continuity_max_gap`` (45) frames) a straight line fitted to the last
+   ``continuity_frames`` (10) frames before the gap, extrapolated at constant velocity to
+   the middle of the gap, and one fitted to the first 10 after, extrapolated backward, meet
+   within ``continuity_m`` (10 mm); the key is the smaller of that miss and the distance.
 4. swap repair: the linkage decides each gap on one minimum distance, and two markers of one
    segment that vanish together can come back exchanged (each id then holds fragments of
    both). For every two merged markers that are rigid with respect to each other (sd of
@@ -50,7 +57,8 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    of such gaps (the margin was set from this, before running the benchmark);
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
-   repeated on the repaired markers while there are more than the thesis' bound.
+   repeated on the repaired markers while there are more than the thesis' bound, then one
+   loose pass (``loose_distance_m``) as before the repair.
 
 The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
 (1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on
@@ -83,6 +91,35 @@ merged fragments share a partner rigid over both" (on figures 0-119, 128 of 6700
 are often not seen with the other fragment, and the vetoed right pairs become splits), and
 "a loose merge keeps each track rigid to its most rigid partner" (on the failing figures
 1, 16, 30, 59, 62, 93, 96, 110 it blocked right merges too: more splits, none fixed).
+
+Motion continuity (step 3) measured on figures 0-39 before choosing it: over every pair of
+kept fragments where one starts 1-80 frames after the other ends (2655 pairs of one marker,
+34687 of two, 1963 of these within 0.1 m pose-aligned distance), constant-velocity fits on
+10 frames meeting at mid-gap separated best of those tried (quadratic fits on 15 or 20
+frames; each end extrapolated to the other's first frame). One marker, median / 99th
+percentile of the miss: gaps of 1-5 frames 2 / 25 mm, 6-10 4 / 49, 11-20 7.5 / 78, 21-30
+20 / 156, 31-45 36 / 217; two markers within 0.1 m, smallest: 16, 24, 17, 14, 18 mm (5th
+percentile 38-55 mm). No pair of two markers missed by less than 13.7 mm (at any gap up to
+80 frames), and 10 mm accepts 135 of the 542 one-marker pairs above ``max_distance_m``
+with gaps <= 45 frames, hence ``continuity_m``. Held out, figures 40-119 (5482 and 75756
+pairs): one marker 2 / 27, 3.5 / 54, 8 / 79, 20 / 158, 39 / 227 mm; two markers within
+0.1 m, smallest 18, 21, 8, 8, 13 mm: 10 mm accepts 239 of 1053 one-marker pairs above
+``max_distance_m`` and 2 of 4154 two-marker pairs (8.0 mm in figures 56 and 71, which
+still merge: a better candidate takes the fragment first). The
+miss cannot veto a pair: one marker's miss reached 8.7 mm per frame of gap on figures
+0-39 but 15 mm per frame on figure 41 (fast distal segments), and a veto at 10 mm plus
+10 mm per frame (chosen on 0-39) split five markers there. ``bench_markersets.py 0 120``
+(HEAD measured in the same tree: 36/40, 38/40, 35/40, failing 1, 25, 30, 31, 64, 85, 93,
+96, 98, 110, 119) -> 38/40, 40/40, 37/40 (115 of 120). Fixed: 1, 25, 31, 64, 96, 98,
+110 (a right continuation above ``max_distance_m`` now merges before the wrong one).
+Lost: 28 (the rescued merges change the tracks the loose pass aligns on: a 14-frame
+fragment then lies 5.5 mm, not 66 mm, from another marker of its segment across a 7-frame
+gap, and joins it). Still failing: 30, 85, 93 (cross-segment merges; the right continuations
+miss by more than 10 mm or across more than 45 frames) and 119 (two markers of a segment exchanged, not repaired). The
+rescue alone also left one marker as two ids in figures 23, 41 and 51 (changed alignments
+put the pieces above ``max_distance_m``); the loose pass of step 5 joins them, and alone
+(``continuity_m=0``) changes no figure (109 of 120). Merge time x1.07 of steps 1-3 alone
+in the same run (218 s for 120 figures; HEAD 196 s in a separate run).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -145,7 +182,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
                     n_markers: int | None = None, samples: int = 12, neighbours: int = 3,
                     max_passes: int = 4, loose_distance_m: float = 0.1,
                     repair_swaps: bool = True, swap_margin: float = 1.0,
-                    rng=None) -> MarkerSets:
+                    continuity_m: float = 0.01, rng=None) -> MarkerSets:
     """Merge fragment columns of ``trajectories`` (T, F, 3) into physical markers.
 
     ``max_distance_m`` (12 mm) sits below the spacing of markers on one segment (real
@@ -162,6 +199,9 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     partner was hidden too leaves only partners across a joint to align on.
     ``repair_swaps`` then runs steps 4 and 5 of the module docstring (``swap_margin``: the
     least gain in the rigidity cost for which fragments change marker).
+    ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
+    extrapolations across a gap for which a pair beyond ``max_distance_m`` still merges
+    (module docstring, step 3).
     ``rng`` is unused (the method is deterministic) and accepted for the pipeline's
     uniform signature."""
     X = np.asarray(trajectories, np.float64)
@@ -173,14 +213,17 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         raise ValueError(f"max_distance_m={max_distance_m!r}, expected > 0")
     if not swap_margin >= 0:
         raise ValueError(f"swap_margin={swap_margin!r}, expected >= 0")
+    if not continuity_m >= 0:
+        raise ValueError(f"continuity_m={continuity_m!r}, expected >= 0")
     if neighbours < 3:
         raise ValueError(f"neighbours={neighbours!r}, expected >= 3 (a pose needs 3 points)")
-    first = _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours)
+    kw = {"continuity_m": continuity_m}
+    first = _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours, **kw)
     res = first
     for k in range(max_passes):
         last = k == max_passes - 1
         nxt = _merge_pass(res.positions, 1, loose_distance_m if last else max_distance_m,
-                          n_markers, samples, neighbours)
+                          n_markers, samples, neighbours, **kw)
         if nxt.n_markers == res.n_markers:
             if last or nxt.n_markers <= first.n_min:
                 break
@@ -197,13 +240,18 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
                         key=lambda g: _first_seen(X, g[0]))
         res = MarkerSets(positions=_tracks(X, groups), groups=tuple(tuple(g) for g in groups),
                          n_min=res.n_min, dropped=res.dropped, distance=res.distance)
-        for _ in range(max_passes):
+        loose = False
+        for _ in range(max_passes + 1):
             # a marker left as two ids beside a swap (the swap made them overlap) can merge now
             if res.n_markers <= first.n_min:
                 break
-            nxt = _merge_pass(res.positions, 1, max_distance_m, n_markers, samples, neighbours)
+            nxt = _merge_pass(res.positions, 1, loose_distance_m if loose else max_distance_m,
+                              n_markers, samples, neighbours, **kw)
             if nxt.n_markers == res.n_markers:
-                break
+                if loose:
+                    break
+                loose = True
+                continue
             groups = [sorted((f for g in grp for f in res.groups[g]),
                              key=lambda f: _first_seen(X, f)) for grp in nxt.groups]
             res = MarkerSets(positions=nxt.positions, groups=tuple(tuple(g) for g in groups),
@@ -367,8 +415,48 @@ def _gap(fa: np.ndarray, fb: np.ndarray) -> int:
     return int(np.minimum(after, before).min())
 
 
+def _run_ends(frames: np.ndarray, x: np.ndarray, n: int):
+    """Per contiguous run of sorted ``frames`` (positions ``x`` (len, 3)): (first frame,
+    last frame, position and velocity per frame of a straight-line fit to its first ``n``
+    frames at the first frame, the same for its last ``n`` frames at the last frame)."""
+    cut = np.flatnonzero(np.diff(frames) > 1) + 1
+    out = []
+    for lo, hi in zip(np.r_[0, cut], np.r_[cut, frames.size]):
+        ends = []
+        for sl, t0 in ((slice(lo, min(hi, lo + n)), frames[lo]),
+                       (slice(max(lo, hi - n), hi), frames[hi - 1])):
+            t = frames[sl] - t0
+            if t.size < 2:
+                ends.append((x[sl].mean(0), np.full(3, np.nan)))
+                continue
+            A = np.stack([np.ones(t.size), t], 1)
+            c = np.linalg.lstsq(A, x[sl], rcond=None)[0]
+            ends.append((c[0], c[1]))
+        out.append((int(frames[lo]), int(frames[hi - 1]), ends[0], ends[1]))
+    return out
+
+
+def _junctions(ra, rb):
+    """(gap frames, miss m) at every change of column between two never-overlapping columns
+    (runs from ``_run_ends``): the miss is the distance at the middle of the gap between the
+    end of the run before, extrapolated forward at constant velocity, and the start of the
+    run after, extrapolated backward."""
+    runs = sorted([(r, 0) for r in ra] + [(r, 1) for r in rb], key=lambda q: q[0][0])
+    out = []
+    for (r0, s0), (r1, s1) in zip(runs[:-1], runs[1:]):
+        if s0 == s1:
+            continue
+        t1, t2 = r0[1], r1[0]
+        mid = 0.5 * (t1 + t2)
+        (p0, v0), (p1, v1) = r0[3], r1[2]
+        miss = float(np.linalg.norm(p0 + v0 * (mid - t1) - p1 - v1 * (mid - t2)))
+        out.append((t2 - t1, miss))               # NaN: a run too short for a velocity
+    return out
+
+
 def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
-                partner_sd_weight=0.5, gap_weight_m=1e-4) -> MarkerSets:
+                partner_sd_weight=0.5, gap_weight_m=1e-4, continuity_m=0.0,
+                continuity_frames=10, continuity_max_gap=45) -> MarkerSets:
     """One merge: drop short fragments, pose-aligned distances, constrained linkage."""
     T, F = X.shape[:2]
     vis = ~np.isnan(X).any(2)
@@ -437,9 +525,20 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
     members = {c: [c] for c in range(K)}
     seen = {c: vk[:, c].copy() for c in range(K)}
     iu, ju = np.triu_indices(K, 1)
-    cand = np.flatnonzero(Dk[iu, ju] <= max_distance_m)
+    dist = Dk[iu, ju]
+    rescued = np.zeros(dist.size, bool)
+    if continuity_m > 0:
+        # motion continuity: a pair whose ends meet within continuity_m across every change
+        # of column (gaps of at most continuity_max_gap frames) is a candidate at that miss
+        runs = [_run_ends(frames[i], Xk[frames[i], i], continuity_frames) for i in range(K)]
+        for e in np.flatnonzero(~overlap[iu, ju]):
+            jn = _junctions(runs[iu[e]], runs[ju[e]])
+            if jn and all(g <= continuity_max_gap and m <= continuity_m for g, m in jn):
+                dist[e] = np.fmin(dist[e], max(m for g, m in jn))
+                rescued[e] = True
+    cand = np.flatnonzero((dist <= max_distance_m) | rescued)
     gap = np.array([_gap(frames[iu[e]], frames[ju[e]]) for e in cand], np.float64)
-    key = Dk[iu[cand], ju[cand]] + gap_weight_m * gap
+    key = dist[cand] + gap_weight_m * gap
     for e in cand[np.argsort(key, kind="stable")]:
         if len(members) <= lower:
             break

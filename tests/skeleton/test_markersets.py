@@ -148,13 +148,15 @@ def test_swapped_markers_of_a_two_marker_segment_are_repaired(k):
 def test_marker_split_beside_a_swap_merges_after_the_repair(k):
     """Benchmark figures 16 and 79: the repair undoes a swap but leaves one marker as two
     ids (the swapped marker overlapped its other piece, so the linkage could not join
-    them); merging again after the repair joins them."""
+    them); merging again after the repair joins them. (With the motion-continuity cue the
+    linkage of figure 79 no longer makes that swap; the split is set up without it.)"""
     from skeleton.markersets import _repair_swaps
     fig, mo, X, owner = _bench_figure(k)
-    before = merge_fragments(X, repair_swaps=False)
+    before = merge_fragments(X, repair_swaps=False, continuity_m=0.0)
     repaired = _repair_swaps(X, [list(g) for g in before.groups], MIN_FRAMES, 1.0)
     assert all(len({int(owner[f]) for f in g}) == 1 for g in repaired)     # pure ...
     assert len(repaired) == fig.n_markers + 1                   # ... but one id too many
+    _check(fig, X, owner, merge_fragments(X, continuity_m=0.0), mo.markers)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
@@ -203,3 +205,35 @@ def test_planted_swap_is_repaired():
     assert planted != truth
     repaired = _repair_swaps(X, planted, MIN_FRAMES, 1.0)
     assert sorted(sorted(int(f) for f in g) for g in repaired) == truth
+
+
+def test_continuity_miss_is_zero_for_constant_velocity():
+    """A marker moving at constant velocity, cut by a gap: its two runs meet exactly across
+    the gap; a second marker 20 mm beside it misses by 20 mm."""
+    from skeleton.markersets import _junctions, _run_ends
+    t = np.arange(100.0)
+    x = np.stack([0.01 * t, -0.003 * t, np.full_like(t, 1.0)], 1)
+    a, b = np.arange(0, 40), np.arange(60, 100)
+    ra, rb = _run_ends(a, x[a], 10), _run_ends(b, x[b], 10)
+    ((gap, miss),) = _junctions(ra, rb)
+    assert gap == 21 and miss < 1e-9
+    ((_, miss),) = _junctions(ra, _run_ends(b, x[b] + [0.0, 0.02, 0.0], 10))
+    assert abs(miss - 0.02) < 1e-9
+    # a column of two runs around the other: a change of column at either gap
+    c = np.r_[0:20, 80:100]
+    assert [g for g, _ in _junctions(_run_ends(c, x[c], 10), _run_ends(a[25:], x[a[25:]], 10))
+            ] == [6, 41]
+
+
+@pytest.mark.parametrize("k", [25])
+def test_motion_continuity_rescues_a_continuation_beyond_max_distance(k):
+    """Benchmark figure 25: the right continuation of a fragment lies 13.6 mm away after
+    pose alignment (above max_distance_m), so without the continuity cue the fragment is
+    merged later with a marker of another segment; its end, extrapolated at constant
+    velocity, meets the continuation's start within 5 mm, which merges them."""
+    fig, mo, X, owner = _bench_figure(k)
+    before = merge_fragments(X, continuity_m=0.0)
+    mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
+    assert mixed                                # the failure this test guards against ...
+    assert any(len({int(fig.marker_segment[owner[f]]) for f in g}) > 1 for g in mixed)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
