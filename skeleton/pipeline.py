@@ -48,7 +48,8 @@ FALSIFY = 2.5          # re-tested with anchors; raised when the completed fit c
                        # both 290/300, POOR_FRAME 5 289/300; with the split 291/300; before
                        # these rules 284/300. With hw_sim's 20 mm marker spacing (70ca108):
                        # 293/300, with anchors chained through completed segments 294/300;
-                       # with 400 draws per marker (90200a6, 14 figures re-rolled) 293/300
+                       # with 400 draws per marker (90200a6, 14 figures re-rolled) 293/300;
+                       # anchors only from the cheapest neighbour with a frame 294/300
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
 HINGE_SURE = 1.5       # hinge pairs costing at most this x the median tree-edge cost: sure
 JUNCTION_K = 25.0      # tree joints closer than this x the within-segment distance sd: one
@@ -126,7 +127,10 @@ def _anchor_points(data, members, cost, floor, frameless) -> tuple[dict, np.ndar
     carries with noise at most ANCHOR_GAIN x the marker noise. J is a point fixed in a
     (a joint within the noise): a third point for a's frame. In rounds: a segment completed
     by its anchor lends its completed frame (markers + anchor) to its frameless neighbours
-    in the next round (a chain of 2-marker segments hanging from a framed one). (Tried:
+    in the next round (a chain of 2-marker segments hanging from a framed one). When the
+    cheapest neighbour with a frame carries the centre too noisily, a gets no anchor in that
+    round: a costlier neighbour is likelier a false sibling (seed 3022: its true parent's
+    gain was 3.3, and the next one, completed later, was a sibling 31 mm away). (Tried:
     waiting for a cheaper frameless neighbour to be completed first - it anchored the
     largest benchmark case's segment 7 on its false sibling 4.)
     Returns the anchors, the data with the anchor points appended as extra markers, and
@@ -147,7 +151,7 @@ def _anchor_points(data, members, cost, floor, frameless) -> tuple[dict, np.ndar
                 if f.ok and seen.size and _point_noise_gain(
                         ext[seen[0], ref], f.world[seen[0]]) <= ANCHOR_GAIN:
                     new[int(a)] = (int(p), f.world)
-                    break
+                break       # the cheapest neighbour with a frame, or none
         if not new:
             return anchors, ext, cols
         for a in sorted(new):

@@ -210,3 +210,17 @@ def test_chained_anchors_raise_a_false_pair_below_a_two_marker_parent():
         i, j = tuple(e)
         assert cost[i, j] == before[i, j], (i, j)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
+def test_no_anchor_through_a_costlier_neighbour():
+    """Seed 3022: 2-marker segments 1 and 3 are siblings under 3-marker root 0, their joints
+    31 mm apart. The root's frame carries either joint centre too noisily (gain > 3), so
+    neither takes its anchor there; 1 is completed through its child 5. Segment 3 must then
+    stay without an anchor rather than take one through completed 1, a costlier neighbour
+    than its parent: that false anchor made the completed 1-3 pair look like a joint."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(3022)
+    assert fig.parents[1] == fig.parents[3] == 0 and m[1].size == m[3].size == 2
+    _, cost, floor, completed = _completed_costs(smooth, m, truth, (1, 3), min_q)
+    assert completed.anchors[1][0] == 5
+    assert 3 not in completed.anchors or completed.anchors[3][0] != 1
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
