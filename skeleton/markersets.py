@@ -217,23 +217,19 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         raise ValueError(f"continuity_m={continuity_m!r}, expected >= 0")
     if neighbours < 3:
         raise ValueError(f"neighbours={neighbours!r}, expected >= 3 (a pose needs 3 points)")
-    kw = {"continuity_m": continuity_m}
-    first = _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours, **kw)
+    first = _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
+                        continuity_m=continuity_m)
     res = first
     for k in range(max_passes):
         last = k == max_passes - 1
         nxt = _merge_pass(res.positions, 1, loose_distance_m if last else max_distance_m,
-                          n_markers, samples, neighbours, **kw)
+                          n_markers, samples, neighbours, continuity_m=continuity_m)
         if nxt.n_markers == res.n_markers:
             if last or nxt.n_markers <= first.n_min:
                 break
             max_passes = k + 2          # converged: one loose pass next
             continue
-        res = MarkerSets(positions=nxt.positions, n_min=first.n_min, dropped=first.dropped,
-                         distance=first.distance,
-                         groups=tuple(tuple(sorted((f for g in grp for f in res.groups[g]),
-                                                   key=lambda f: _first_seen(X, f)))
-                                      for grp in nxt.groups))
+        res = _regroup(X, res, nxt)
     if repair_swaps and res.n_markers >= 3:
         groups = _repair_swaps(X, [list(g) for g in res.groups], min_frames, swap_margin)
         groups = sorted((sorted(g, key=lambda f: _first_seen(X, f)) for g in groups),
@@ -246,17 +242,23 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
             if res.n_markers <= first.n_min:
                 break
             nxt = _merge_pass(res.positions, 1, loose_distance_m if loose else max_distance_m,
-                              n_markers, samples, neighbours, **kw)
+                              n_markers, samples, neighbours, continuity_m=continuity_m)
             if nxt.n_markers == res.n_markers:
                 if loose:
                     break
                 loose = True
                 continue
-            groups = [sorted((f for g in grp for f in res.groups[g]),
-                             key=lambda f: _first_seen(X, f)) for grp in nxt.groups]
-            res = MarkerSets(positions=nxt.positions, groups=tuple(tuple(g) for g in groups),
-                             n_min=res.n_min, dropped=res.dropped, distance=res.distance)
+            res = _regroup(X, res, nxt)
     return res
+
+
+def _regroup(X, res: MarkerSets, nxt: MarkerSets) -> MarkerSets:
+    """``res`` after a merge pass on its tracks: ``nxt``'s tracks, each group the union of
+    the fragments of the ``res`` markers it merged (in order of first sight)."""
+    groups = tuple(tuple(sorted((f for g in grp for f in res.groups[g]),
+                                key=lambda f: _first_seen(X, f))) for grp in nxt.groups)
+    return MarkerSets(positions=nxt.positions, groups=groups, n_min=res.n_min,
+                      dropped=res.dropped, distance=res.distance)
 
 
 def _tracks(X, groups) -> np.ndarray:
