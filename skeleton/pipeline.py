@@ -137,6 +137,7 @@ def _anchor_points(data, members, cost, floor, frameless) -> tuple[dict, np.ndar
     each completed segment's column in it."""
     anchors, cols, ext = {}, {}, data
     has_frame = ~np.asarray(frameless, bool)
+    too_noisy = set()       # (a, p) whose fit failed or was too noisy: same in later rounds
     while True:
         new = {}
         for a in np.flatnonzero(~has_frame):
@@ -145,12 +146,16 @@ def _anchor_points(data, members, cost, floor, frameless) -> tuple[dict, np.ndar
                     break
                 if not has_frame[p]:
                     continue
+                if (a, p) in too_noisy:
+                    break
                 ref = members[p] if p not in cols else np.append(members[p], cols[p])
                 f = fit_joint(ext, ref, members[a], ref=0)
                 seen = np.flatnonzero(~np.isnan(f.world).any(1))
                 if f.ok and seen.size and _point_noise_gain(
                         ext[seen[0], ref], f.world[seen[0]]) <= ANCHOR_GAIN:
                     new[int(a)] = (int(p), f.world)
+                else:
+                    too_noisy.add((a, p))
                 break       # the cheapest neighbour with a frame, or none
         if not new:
             return anchors, ext, cols
