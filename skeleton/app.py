@@ -85,7 +85,12 @@ def write_outputs(run: SkeletonRun, bvh_path, json_path=None, units: str = "m") 
                  "mean_marker_deviation_mm": 1e3 * d.overall_mean_m,
                  "marker_deviation_mm": {n: (None if not np.isfinite(v) else 1e3 * float(v))
                                          for n, v in zip(d.marker_names, d.mean_m)},
-                 "fitted_fraction": float((run.fit.status > 0).mean())}
+                 "fitted_fraction": float((run.fit.status > 0).mean()),
+                 "junctions": [{"segments": [run.rigid.segment_names[m] for m in jn.segments],
+                                "hub": run.rigid.segment_names[jn.hub],
+                                "joint_spread_m": (None if not np.isfinite(jn.spread_m)
+                                                   else jn.spread_m)}
+                               for jn in run.result.junctions]}
         if run.markersets is not None:
             extra["marker_sets"] = {"groups": [list(g) for g in run.markersets.groups],
                                     "dropped": list(run.markersets.dropped)}

@@ -26,14 +26,26 @@ Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-__all__ = ["junction_groups", "relative_spread", "resolve_junctions"]
+__all__ = ["Junction", "junction_groups", "relative_spread", "resolve_junctions"]
 
 SPREAD_FRAMES = 200
 SPLIT_DEPTH = 2     # a group without a hub is split at half the tolerance, at most this often
 COST_WEIGHT = 1.0   # the star's summed joint cost beside the summed relative rotation, each
                     # over its mean across the candidate hubs
+
+
+class Junction(NamedTuple):
+    """A group of segments re-linked as a star: segments (sorted), the hub chosen, and
+    spread_m, the largest median distance between two of the group's joints on a shared
+    segment (how far apart the joints are that the data can barely tell apart)."""
+
+    segments: tuple[int, ...]
+    hub: int
+    spread_m: float
 
 
 def _gap(ca, aa, cb, ab) -> np.ndarray:
@@ -112,7 +124,7 @@ def relative_spread(traj: np.ndarray, ma, mb, centre: np.ndarray) -> float:
 
 def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.ndarray,
                       tol_m: float, max_cost: float, axes: dict | None = None,
-                      recost=None, is_hinge=None) -> np.ndarray:
+                      recost=None, is_hinge=None, record: list | None = None) -> np.ndarray:
     """Tree edges (S-1, 2) with every junction group re-linked as a star around its hub
     (see the module docstring). A member whose star would use an edge costing more than
     ``max_cost`` is no candidate hub (a group without candidates is split, see the module
@@ -122,7 +134,8 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
     is a rotation about one fixed axis: that is evidence, not a prior (the rotation between
     two segments hung from one hub composes two joints' rotations, which is a one-axis
     rotation only when both are hinges about one axis), so the hubs whose star has the most
-    hinge edges are kept before the relative-rotation prior chooses among them."""
+    hinge edges are kept before the relative-rotation prior chooses among them.
+    ``record``, when given, gets a ``Junction`` per group re-linked around a hub."""
     edges = {frozenset(int(v) for v in e) for e in edges}
     cost = np.array(cost, float)
 
@@ -171,6 +184,12 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
                                          tol / 2, axes):
                     edges = relink(edges, g, tol / 2, depth + 1)
             return edges
+        if record is not None:
+            gaps = [np.nanmedian(_gap(centres[e], axes.get(e), centres[f], axes.get(f)))
+                    for i, e in enumerate(inner) for f in inner[i + 1:] if e & f]
+            gaps = [g for g in gaps if np.isfinite(g)]
+            record.append(Junction(tuple(sorted(int(m) for m in grp)), int(hub),
+                                   float(max(gaps)) if gaps else float("nan")))
         return (edges - set(inner)) | {frozenset((hub, m)) for m in grp if m != hub}
 
     for grp in junction_groups(sorted(tuple(sorted(e)) for e in edges), centres, tol_m,

@@ -23,7 +23,7 @@ from scipy.signal import butter, sosfiltfilt
 
 from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_cost
 from skeleton.segments import segment_markers
-from skeleton.junctions import resolve_junctions
+from skeleton.junctions import Junction, resolve_junctions
 from skeleton.topology import skeleton_tree, tree_from_edges
 
 __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
@@ -210,7 +210,10 @@ class SkeletonResult:
     ``skeleton.joints.joint_cost``; on 6 Hz low-passed data when the data is noisy);
     joints: tuple of JointFit per segment (None for the root: the joint with its parent;
     fitted on the low-passed data when noisy); joint_centres (T, S, 3) m (the root's: NaN);
-    rate_hz."""
+    rate_hz; junctions: a ``skeleton.junctions.Junction`` per group of segments found
+    meeting at one point and re-linked around a hub: there the parent-child choice rests on
+    a prior as much as on the fit (coincident joints make the alternatives kinematically
+    equivalent)."""
 
     labels: np.ndarray
     n_segments: int
@@ -221,6 +224,7 @@ class SkeletonResult:
     joints: tuple
     joint_centres: np.ndarray
     rate_hz: float
+    junctions: tuple[Junction, ...] = ()
 
 
 def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, rng=None,
@@ -310,6 +314,7 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
 
     # Segments meeting at one point (sibling joints within the joint-centre uncertainty):
     # the MST's choice among them is arbitrary; re-link each such group around its hub.
+    junctions: list[Junction] = []
     if S > 2:
         centres = {frozenset((int(a), int(b))): fit(int(a), int(b)).world for a, b in top.edges}
         axes = {frozenset((int(a), int(b))): fit(int(a), int(b)).axis_world
@@ -320,8 +325,11 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                   max_cost=JUNCTION_COST * float(np.max(tree_cost)), axes=axes,
                                   recost=lambda a, b: joint_cost(smooth, members[a], members[b],
                                                                  min_quality=min_q),
-                                  is_hinge=lambda a, b: fit(a, b).hinge)
+                                  is_hinge=lambda a, b: fit(a, b).hinge, record=junctions)
         top = tree_from_edges(S, edges)
+        for jn in junctions:
+            say(f"junction: segments {', '.join(map(str, jn.segments))}, joints within "
+                f"{jn.spread_m * 1e3:.1f} mm; hub {jn.hub} (relative rotation + joint costs)")
     say(f"topology: root segment {top.root}")
     jc = np.full((T, S, 3), np.nan)
     joints: list[JointFit | None] = [None] * S
@@ -334,4 +342,5 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
         jc[:, s] = f.world
     return SkeletonResult(labels=seg.labels, n_segments=S, eigengap_k=seg.eigengap_k,
                           root=top.root, parents=top.parents, cost=cost, joints=tuple(joints),
-                          joint_centres=jc, rate_hz=float(rate_hz))
+                          joint_centres=jc, rate_hz=float(rate_hz),
+                          junctions=tuple(junctions))

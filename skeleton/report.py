@@ -7,8 +7,9 @@
 - ``marker_deviation_table(trajectories, rigid, fit) -> DeviationTable``: per marker, the
   average distance between the measured and the fitted marker over the frames where both
   exist (the thesis' Tables 5.2-5.7, 000 chapter 5); ``.format()`` prints it.
-- ``summary_table(rigid, deviation) -> str``: segments, markers per segment, joints, bone
-  lengths and mean marker deviation (the ``mocap skeleton`` summary).
+- ``summary_table(rigid, deviation, junctions=()) -> str``: segments, markers per segment,
+  joints, bone lengths and mean marker deviation, and the junctions (segments meeting at
+  one point, re-linked around a hub) (the ``mocap skeleton`` summary).
 Conventions: docs/conventions.md [units] (files in m, printed tables in mm).
 """
 from __future__ import annotations
@@ -164,8 +165,11 @@ def marker_deviation_table(trajectories, rigid: RigidSkeleton, fit: SkeletonFit)
                           mean_m=mean, max_m=mx, frames=n, segment_names=rigid.segment_names)
 
 
-def summary_table(rigid: RigidSkeleton, deviation: DeviationTable) -> str:
-    """Segments (markers, parent, joint type, bone length, mean deviation) as text."""
+def summary_table(rigid: RigidSkeleton, deviation: DeviationTable, junctions=()) -> str:
+    """Segments (markers, parent, joint type, bone length, mean deviation) as text; then a
+    line per junction (``skeleton.junctions.Junction``: segments meeting at one point,
+    whose parent-child choice rests on a prior as much as on the fit: with joints a few
+    mm apart the alternatives are kinematically equivalent)."""
     rows = [f"{'segment':<8} {'parent':<8} {'markers':>7} {'joint':<6} {'bone mm':>8} "
             f"{'residual mm':>11} {'mean dev mm':>11}"]
     for s in rigid.order:
@@ -182,4 +186,9 @@ def summary_table(rigid: RigidSkeleton, deviation: DeviationTable) -> str:
     rows.append(f"{rigid.n_segments} segments, {rigid.n_markers} markers, "
                 f"{rigid.n_segments - 1} joints ({int(rigid.hinge.sum())} hinges); "
                 f"mean marker deviation {1e3 * deviation.overall_mean_m:.3f} mm")
+    for jn in junctions:
+        names = ", ".join(rigid.segment_names[m] for m in jn.segments)
+        rows.append(f"junction: {names} (joints within {1e3 * jn.spread_m:.1f} mm) hang from "
+                    f"{rigid.segment_names[jn.hub]} (the hub chosen by relative rotation "
+                    f"and joint costs)")
     return "\n".join(rows)

@@ -26,7 +26,7 @@ def _run(args) -> int:
                        merge=not args.no_merge, min_frames=args.min_frames,
                        ik=not args.closed_form)
     paths = write_outputs(run, args.output, args.report, units=args.units)
-    print(summary_table(run.rigid, run.deviation))
+    print(summary_table(run.rigid, run.deviation, run.result.junctions))
     print()
     print(run.deviation.format())
     for p in paths:

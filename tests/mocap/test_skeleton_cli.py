@@ -67,3 +67,31 @@ def test_run_skeleton_on_tracker_fragments(figure):
     assert segmap is not None and run.rigid.n_segments == fig.n_segments
     err = joint_errors(fig, mo, run.rigid.parents, run.fit.joint_centres, segmap)
     assert np.nanmedian(err) < 1e-6
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_cli_reports_a_junction(tmp_path, capsys):
+    """Two siblings whose joints coincide: the summary and the JSON name the junction and
+    the hub the solver chose (here the true parent)."""
+    import json
+
+    from tests.skeleton.test_junctions import _junction_figure
+    fig, p, a, b = _junction_figure(0)
+    mo = animate(fig, 600, rng=0, rom_deg=60.0)
+    src = write_markers(MarkerData(positions=mo.markers, labels=fig.marker_names,
+                                   rate_hz=mo.rate_hz), tmp_path / "m.c3d")
+    rep = tmp_path / "s.json"
+    assert main(["skeleton", str(src), "-o", str(tmp_path / "s.bvh"), "--report", str(rep),
+                 "--no-merge"]) == 0
+    out = capsys.readouterr()
+    d = json.loads(rep.read_text())
+    rig = read_skeleton_json(rep)
+    lab = np.array([int(rig.marker_segment[rig.marker_names.index(n)])
+                    for n in fig.marker_names])
+    segmap = segment_map(fig, lab)
+    assert segmap is not None
+    names = {f"seg{segmap[s]}" for s in (p, a, b)}
+    found = [j for j in d["extra"]["junctions"] if set(j["segments"]) == names]
+    assert len(found) == 1 and found[0]["hub"] == f"seg{segmap[p]}"
+    assert found[0]["joint_spread_m"] < 2e-3
+    assert "junction: " in out.out and "junction: " in out.err

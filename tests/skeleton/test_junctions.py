@@ -148,3 +148,20 @@ def test_chained_junctions_split_until_each_has_a_hub():
     assert np.linalg.norm(fig.joint_offsets[3] - fig.joint_offsets[5]) < 2e-3
     noisy = mo.markers + np.random.default_rng(27).normal(0, 1e-3, mo.markers.shape)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
+def test_resolved_junction_is_recorded():
+    """``record`` gets the group, its hub and how far apart its joints are."""
+    fig, p, a, b = _junction_figure(0)
+    mo = animate(fig, 600, rng=0, rom_deg=60.0)
+    members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
+    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
+    wrong = (truth - {frozenset((p, b))}) | {frozenset((a, b))}
+    centres = _truth_centres(fig, mo, truth | wrong)
+    centres[frozenset((a, b))] = mo.joint_centres[:, a]
+    rec = []
+    resolve_junctions(mo.markers, members, np.array([sorted(e) for e in wrong]), centres,
+                      np.zeros((fig.n_segments,) * 2), TOL_M, max_cost=1.0, record=rec)
+    assert len(rec) == 1
+    assert rec[0].segments == tuple(sorted((p, a, b))) and rec[0].hub == p
+    assert rec[0].spread_m < 1e-6      # the siblings' joints coincide exactly here
