@@ -22,6 +22,15 @@ star would use an edge costing more than ``max_cost`` is not considered. A group
 member can join as a hub chained distinct junctions (each joint within the tolerance of the
 next): it is split at half the tolerance, up to ``SPLIT_DEPTH`` times, and each tighter group
 resolved (held-out seed 5027: siblings 1.5 mm apart inside a chain of nine segments).
+A star cannot hold a chain inside the group (a child of the hub whose own child's joint
+lies within the tolerance): the pipeline's sure hinge pairs (``keep``) stay linked when
+they fit better than the costlier of their two hub links, the member with that link hung
+from the other instead of the hub. Seeds 7013 and 7048 (1 mm noise) had the grandchild on
+the hub (its true joint a hinge at 0.87x and 0.96x the floor, the hub link 1.04x and
+1.63x); without the cost condition seed 8013 lost its topology (siblings with hinge axes
+23 degrees apart fit a false hinge at 1.2x, against their hub links at 0.54x and 0.98x).
+Exact topology over seed sets 1000+ to 10000+ of benchmarks/bench_skeleton.py (1 mm
+noise): 484 -> 486 of 500, no figure lost.
 Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
@@ -122,9 +131,36 @@ def relative_spread(traj: np.ndarray, ma, mb, centre: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.arccos(np.clip(cos, -1, 1)) ** 2)))
 
 
+def _star(grp: set, hub: int, keep, cost: np.ndarray) -> set:
+    """The group's links: the ``keep`` pairs inside it that fit better than the costlier
+    of their two hub links (cheapest first, as long as they make no cycle), then the hub's
+    star, cheapest link first, for the members not yet linked."""
+    lab = {m: m for m in grp}
+
+    def root(v):
+        while lab[v] != v:
+            v = lab[v]
+        return v
+
+    nodes = sorted(grp)
+    kept = [] if keep is None else sorted(
+        ((a, b) for i, a in enumerate(nodes) for b in nodes[i + 1:] if keep[a, b]
+         and (hub in (a, b) or cost[a, b] < max(cost[hub, a], cost[hub, b]))),
+        key=lambda e: cost[e])
+    star = sorted(((hub, m) for m in nodes if m != hub), key=lambda e: cost[e])
+    out = set()
+    for a, b in kept + star:
+        ra, rb = root(a), root(b)
+        if ra != rb:
+            lab[ra] = rb
+            out.add(frozenset((a, b)))
+    return out
+
+
 def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.ndarray,
                       tol_m: float, max_cost: float, axes: dict | None = None,
-                      recost=None, is_hinge=None, record: list | None = None) -> np.ndarray:
+                      recost=None, is_hinge=None, record: list | None = None,
+                      keep: np.ndarray | None = None) -> np.ndarray:
     """Tree edges (S-1, 2) with every junction group re-linked as a star around its hub
     (see the module docstring). A member whose star would use an edge costing more than
     ``max_cost`` is no candidate hub (a group without candidates is split, see the module
@@ -135,7 +171,9 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
     two segments hung from one hub composes two joints' rotations, which is a one-axis
     rotation only when both are hinges about one axis), so the hubs whose star has the most
     hinge edges are kept before the relative-rotation prior chooses among them.
-    ``record``, when given, gets a ``Junction`` per group re-linked around a hub."""
+    ``record``, when given, gets a ``Junction`` per group re-linked around a hub.
+    ``keep`` (S, S) bool, when given: pairs the re-link keeps linked (the tree's sure hinge
+    pairs); a member kept to another is hung from it instead of the hub."""
     edges = {frozenset(int(v) for v in e) for e in edges}
     cost = np.array(cost, float)
 
@@ -190,7 +228,7 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
             gaps = [g for g in gaps if np.isfinite(g)]
             record.append(Junction(tuple(sorted(int(m) for m in grp)), int(hub),
                                    float(max(gaps)) if gaps else float("nan")))
-        return (edges - set(inner)) | {frozenset((hub, m)) for m in grp if m != hub}
+        return (edges - set(inner)) | _star(grp, hub, keep, cost)
 
     for grp in junction_groups(sorted(tuple(sorted(e)) for e in edges), centres, tol_m,
                                axes):

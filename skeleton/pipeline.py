@@ -5,8 +5,8 @@
 variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every segment pair
 (noise-normalised joint-fit residual; on 6 Hz low-passed data when the data is noisy),
 ``skeleton.topology`` (MST; pairs whose fit is a hinge within the noise are taken first),
-``skeleton.junctions`` (segments meeting at one point re-linked around their hub), root =
-tree centre, then a refined joint fit per tree edge. Segments without a usable frame (two
+``skeleton.junctions`` (segments meeting at one point re-linked around their hub, sure hinge
+pairs kept), root = tree centre, then a refined joint fit per tree edge. Segments without a usable frame (two
 markers, or markers within the noise of a line) are fitted in world coordinates from a
 closed-form start, re-searched from many starts where the tree could take them; their cheap
 pairs are then re-tested with an anchor joint completing their frame (``_Completed``; a
@@ -325,7 +325,8 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                   max_cost=JUNCTION_COST * float(np.max(tree_cost)), axes=axes,
                                   recost=lambda a, b: joint_cost(smooth, members[a], members[b],
                                                                  min_quality=min_q),
-                                  is_hinge=lambda a, b: fit(a, b).hinge, record=junctions)
+                                  is_hinge=lambda a, b: fit(a, b).hinge, record=junctions,
+                                  keep=sure)
         top = tree_from_edges(S, edges)
         for jn in junctions:
             say(f"junction: segments {', '.join(map(str, jn.segments))}, joints within "

@@ -224,3 +224,17 @@ def test_no_anchor_through_a_costlier_neighbour():
     assert completed.anchors[1][0] == 5
     assert 3 not in completed.anchors or completed.anchors[3][0] != 1
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
+@pytest.mark.parametrize("seed,parent,child", [(7013, 4, 5), (7048, 2, 14)])
+def test_sure_hinge_chain_kept_inside_a_junction(seed, parent, child):
+    """Seeds 7013 and 7048 (1 mm noise): a junction group holds a chain, a segment whose true
+    joint (a hinge fitting within the noise) sits at nearly the point where its parent
+    meets the hub. The hub's star took it from its parent (7013: 5 onto root 0 instead of
+    4; 7048: hub 4 took its sibling 14 from their parent 2); the sure hinge now stays
+    linked, being cheaper than the hub link it replaces."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(seed)
+    assert fig.parents[child] == parent and fig.joint_types[child] == "hinge"
+    res = solve_skeleton(noisy, mo.rate_hz, rng=0)
+    assert any(len(j.segments) >= 4 for j in res.junctions)
+    assert exact_topology(fig, res)

@@ -165,3 +165,60 @@ def test_resolved_junction_is_recorded():
     assert len(rec) == 1
     assert rec[0].segments == tuple(sorted((p, a, b))) and rec[0].hub == p
     assert rec[0].spread_m < 1e-6      # the siblings' joints coincide exactly here
+
+
+def _chain_at_one_point(seed, tries=400):
+    """A random tree where p's ball-jointed children a and b get one joint, and a's
+    ball-jointed child c gets it too (moved to a's frame origin, a's joint with p): p, a, b
+    and c meet at one point, p the hub of a and b, c hung from a. Returns (fig, p, a, b, c)."""
+    for s in range(seed, seed + tries):
+        fig = random_tree(10, (2, 4), rng=s)
+        for p in range(fig.n_segments):
+            ch = [c for c in np.flatnonzero(fig.parents == p) if fig.joint_types[c] == "ball"]
+            for a in ch:
+                gc = [c for c in np.flatnonzero(fig.parents == a)
+                      if fig.joint_types[c] == "ball"]
+                if len(ch) >= 2 and gc:
+                    b = next(x for x in ch if x != a)
+                    off = np.array(fig.joint_offsets)
+                    off[b] = off[a]
+                    off[gc[0]] = 0.0
+                    return (dataclasses.replace(fig, joint_offsets=off), int(p), int(a),
+                            int(b), int(gc[0]))
+    raise AssertionError("no figure with a grandchild under two ball-jointed siblings")
+
+
+def test_kept_pair_stays_linked_inside_a_junction():
+    """A chain p - a - c at the point where p's children a and b also meet is one junction
+    group, and a star cannot hold it: the hub p's star takes the grandchild c from a. A
+    ``keep`` pair (a sure hinge in the pipeline) that fits better than the hub link it
+    replaces stays linked; one that fits worse does not (near-parallel sibling hinges also
+    fit a hinge within the noise)."""
+    fig, p, a, b, c = _chain_at_one_point(0)
+    mo = animate(fig, 600, rng=0, rom_deg=60.0)
+    members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
+    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
+    wrong = (truth - {frozenset((a, c))}) | {frozenset((p, c))}
+    centres = _truth_centres(fig, mo, truth | wrong)
+    centres[frozenset((p, c))] = mo.joint_centres[:, a]
+    S = fig.n_segments
+    cost = np.full((S, S), 10.0)           # above max_cost: no joint
+    for e in truth | wrong:
+        cost[tuple(e)] = cost[tuple(e)[::-1]] = 1.0
+    for (i, j), v in {(p, c): 1.5, (a, b): 2.0, (b, c): 2.0}.items():
+        cost[i, j] = cost[j, i] = v         # the false pairs in the group fit worse
+    keep = np.zeros((S, S), bool)
+    keep[a, c] = keep[c, a] = True
+    edges = np.array([sorted(e) for e in wrong])
+    rec = []
+    star = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=3.0,
+                             record=rec)
+    assert [(set(j.segments), j.hub) for j in rec] == [({p, a, b, c}, p)]
+    assert {frozenset(map(int, e)) for e in star} == wrong     # the star alone
+    out = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=3.0,
+                            keep=keep)
+    assert {frozenset(map(int, e)) for e in out} == truth
+    cost[a, c] = cost[c, a] = 2.5           # a kept pair costlier than the hub link
+    out = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=3.0,
+                            keep=keep)
+    assert {frozenset(map(int, e)) for e in out} == wrong
