@@ -3,7 +3,7 @@
 ``solve_skeleton(trajectories (T, M, 3), rate_hz, n_segments=None, rng=None, progress=None)
 -> SkeletonResult``. Stages: ``skeleton.segments`` (spectral clustering of distance
 variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every segment pair
-(noise-normalised joint-fit residual; on 6 Hz low-passed data when the data is noisy),
+(noise-normalised joint-fit residual) - both on 6 Hz low-passed data when the data is noisy,
 ``skeleton.topology`` (MST; pairs whose fit is a hinge within the noise are taken first),
 ``skeleton.junctions`` (segments meeting at one point re-linked around their hub, sure hinge
 pairs kept), root = tree centre, then a refined joint fit per tree edge. Segments without a usable frame (two
@@ -22,7 +22,7 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_cost
-from skeleton.segments import segment_markers
+from skeleton.segments import distance_sd, noise_sd, segment_markers
 from skeleton.junctions import Junction, resolve_junctions
 from skeleton.topology import skeleton_tree, tree_from_edges
 
@@ -233,7 +233,15 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     if traj.ndim != 3 or traj.shape[2] != 3:
         raise ValueError(f"trajectories.shape={traj.shape}, expected (T, M, 3)")
     say = progress or (lambda msg: None)
-    seg = segment_markers(traj, n_segments, rng)
+    # Segments from 6 Hz low-passed data when it is noisy: the distance changes across a
+    # joint follow the (slow) motion, white marker noise is broadband (skeleton/segments.py:
+    # right K and partition on seed sets 1000-3000 and 7000-9000, raw -> low-passed: 1 mm
+    # 298 -> 300/300, 2 mm 277 -> 298, 3 mm 230 -> 296; the real arm recording's distance
+    # sd is slow soft-tissue motion, which the filter keeps: its ratios do not change).
+    # The noise level below stays the raw data's.
+    raw_sd = distance_sd(traj)
+    lp = lowpass(traj, rate_hz, trim=True) if noise_sd(raw_sd) > CLEAN_NOISE_M else None
+    seg = segment_markers(traj if lp is None else lp, n_segments, rng)
     S = seg.n_segments
     say(f"segments: {S} (eigengap choice {seg.eigengap_k})")
     members = [np.flatnonzero(seg.labels == s) for s in range(S)]
@@ -242,9 +250,9 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     # (Not when the data is already clean: the filter's own error, ~0.05 mm at 6 Hz, would
     # then be the largest term. Noise level: within-segment distance sd.)
     same = (seg.labels[:, None] == seg.labels[None]) & ~np.eye(seg.labels.size, dtype=bool)
-    noise_m = float(np.median(seg.distance_sd[same])) if same.any() else 0.0
+    noise_m = float(np.median(raw_sd[same])) if same.any() else 0.0
     noisy = noise_m > CLEAN_NOISE_M
-    smooth = lowpass(traj, rate_hz, trim=True) if noisy else traj
+    smooth = (lowpass(traj, rate_hz, trim=True) if lp is None else lp) if noisy else traj
     min_q = (POOR_FRAME * noise_m) ** 2 if noisy else 0.0
     cost = np.full((S, S), np.inf)
     hinge = np.zeros((S, S), bool)

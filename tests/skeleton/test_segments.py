@@ -64,6 +64,34 @@ def test_automatic_segments_match_truth(seed, noise_m):
     assert (np.diff(first) > 0).all()                     # numbered in order of first marker
 
 
+@pytest.mark.parametrize("seed", [1018, 1026, 2004, 3011])
+def test_low_passed_distances_segment_noisier_data(seed):
+    """2 mm marker noise: the raw distance SDs blur segment pairs whose cross distances vary
+    by a few mm (a hinge with markers near its axis); the 6 Hz low-pass that
+    skeleton.pipeline applies keeps that slow variation and removes most of the noise."""
+    from skeleton.pipeline import lowpass
+    fig, mo = _figure(seed)
+    tr = _noisy(mo.markers, seed, 2e-3)
+    assert not _same_partition(fig, segment_markers(tr, None, rng=0))      # the premise
+    assert _same_partition(fig, segment_markers(lowpass(tr, mo.rate_hz, trim=True), None,
+                                                rng=0))
+
+
+@pytest.mark.parametrize("seed", [8033, 8039])
+def test_pipeline_segments_low_passed_data(seed):
+    """Held-out seeds 8033 and 8039 (1 mm noise): raw distance SDs merged two segments
+    (a 2-marker root's marker near a child's hinge axis; a hinge pair whose cross SDs are
+    1.3-3.1x the noise); the pipeline's low-passed segmentation finds all of them."""
+    from skeleton.pipeline import solve_skeleton
+    fig, mo = _figure(seed)
+    tr = _noisy(mo.markers, seed, NOISE_M)
+    assert not _same_partition(fig, segment_markers(tr, None, rng=0))      # the premise
+    res = solve_skeleton(tr, mo.rate_hz, rng=0)
+    assert res.n_segments == fig.n_segments
+    pairs = set(zip(fig.marker_segment.tolist(), res.labels.tolist()))
+    assert len(pairs) == fig.n_segments
+
+
 def test_noise_free_close_pair_across_a_joint():
     """Seed 2003 with 10 mm markers (at least 12 mm apart): two segments whose cross
     distances have SDs <= 2.1 mm. Noise-free, the scale follows the data (no fixed mm floor)
@@ -131,12 +159,17 @@ def test_bad_input_raises():
         segment_markers(np.random.default_rng(0).normal(size=(10, 4, 3)), 9)
 
 
-def _count(base: int, noise_m: float, gaps: bool = False, n: int = 50) -> list[int]:
-    """Seeds in base..base+n-1 whose automatic segmentation is wrong."""
+def _count(base: int, noise_m: float, gaps: bool = False, n: int = 50,
+           lowpassed: bool = False) -> list[int]:
+    """Seeds in base..base+n-1 whose automatic segmentation is wrong (``lowpassed``: on
+    the 6 Hz low-passed data, as skeleton.pipeline segments noisy data)."""
+    from skeleton.pipeline import lowpass
     bad = []
     for seed in range(base, base + n):
         fig, mo = _figure(seed)
         tr = _noisy(mo.markers, seed, noise_m, gaps)
+        if lowpassed and noise_m > 0:
+            tr = lowpass(tr, mo.rate_hz, trim=True)
         if not _same_partition(fig, segment_markers(tr, None, rng=0)):
             bad.append(seed)
     return bad
@@ -166,7 +199,7 @@ if __name__ == "__main__":
     for base in [int(a) for a in sys.argv[1:]] or [1000, 2000]:
         for noise_m, gaps in ((0.0, False), (NOISE_M, False), (NOISE_M, True), (0.5e-3, False),
                               (2e-3, False), (3e-3, False)):
-            bad = _count(base, noise_m, gaps)
+            bad, low = _count(base, noise_m, gaps), _count(base, noise_m, gaps, lowpassed=True)
             print(f"seeds {base}..{base + 49}, noise {noise_m * 1e3:.1f} mm"
-                  f"{' + gaps' if gaps else ''}: {50 - len(bad)}/50 right, wrong: {bad}",
-                  flush=True)
+                  f"{' + gaps' if gaps else ''}: raw {50 - len(bad)}/50 right, wrong: {bad}; "
+                  f"low-passed {50 - len(low)}/50, wrong: {low}", flush=True)
