@@ -45,18 +45,25 @@ def _truth_centres(fig, mo, edges):
     return out
 
 
+def _swapped(fig, seed, true_edge, false_edge, centre_of):
+    """The figure's motion (600 frames, 60 degrees), members, true edges and the tree with
+    ``true_edge`` replaced by ``false_edge``, whose centre is segment ``centre_of``'s joint
+    (the coincident junction point). Returns (mo, members, truth, wrong, edges, centres)."""
+    mo = animate(fig, 600, rng=seed, rom_deg=60.0)
+    members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
+    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
+    wrong = (truth - {frozenset(true_edge)}) | {frozenset(false_edge)}
+    centres = _truth_centres(fig, mo, truth | wrong)
+    centres[frozenset(false_edge)] = mo.joint_centres[:, centre_of]
+    return mo, members, truth, wrong, np.array([sorted(e) for e in wrong]), centres
+
+
 @pytest.mark.parametrize("seed", [0, 300, 600, 900])
 def test_junction_relinked_around_parent(seed):
     """The tree with the child-child edge instead of parent-child is re-linked as the
     truth: the parent is the hub."""
     fig, p, a, b = _junction_figure(seed)
-    mo = animate(fig, 600, rng=seed, rom_deg=60.0)
-    members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
-    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
-    wrong = (truth - {frozenset((p, b))}) | {frozenset((a, b))}
-    edges = np.array([sorted(e) for e in wrong])
-    centres = _truth_centres(fig, mo, truth | wrong)
-    centres[frozenset((a, b))] = mo.joint_centres[:, a]
+    mo, members, truth, wrong, edges, centres = _swapped(fig, seed, (p, b), (a, b), a)
     assert junction_groups(edges, centres, TOL_M) == [{p, a, b}]
     cost = np.zeros((fig.n_segments,) * 2)
     out = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=1.0)
@@ -153,15 +160,10 @@ def test_chained_junctions_split_until_each_has_a_hub():
 def test_resolved_junction_is_recorded():
     """``record`` gets the group, its hub and how far apart its joints are."""
     fig, p, a, b = _junction_figure(0)
-    mo = animate(fig, 600, rng=0, rom_deg=60.0)
-    members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
-    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
-    wrong = (truth - {frozenset((p, b))}) | {frozenset((a, b))}
-    centres = _truth_centres(fig, mo, truth | wrong)
-    centres[frozenset((a, b))] = mo.joint_centres[:, a]
+    mo, members, truth, wrong, edges, centres = _swapped(fig, 0, (p, b), (a, b), a)
     rec = []
-    resolve_junctions(mo.markers, members, np.array([sorted(e) for e in wrong]), centres,
-                      np.zeros((fig.n_segments,) * 2), TOL_M, max_cost=1.0, record=rec)
+    resolve_junctions(mo.markers, members, edges, centres, np.zeros((fig.n_segments,) * 2),
+                      TOL_M, max_cost=1.0, record=rec)
     assert len(rec) == 1
     assert rec[0].segments == tuple(sorted((p, a, b))) and rec[0].hub == p
     assert rec[0].spread_m < 1e-6      # the siblings' joints coincide exactly here
@@ -195,12 +197,7 @@ def test_kept_pair_stays_linked_inside_a_junction():
     replaces stays linked; one that fits worse does not (near-parallel sibling hinges also
     fit a hinge within the noise)."""
     fig, p, a, b, c = _chain_at_one_point(0)
-    mo = animate(fig, 600, rng=0, rom_deg=60.0)
-    members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
-    truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
-    wrong = (truth - {frozenset((a, c))}) | {frozenset((p, c))}
-    centres = _truth_centres(fig, mo, truth | wrong)
-    centres[frozenset((p, c))] = mo.joint_centres[:, a]
+    mo, members, truth, wrong, edges, centres = _swapped(fig, 0, (a, c), (p, c), a)
     S = fig.n_segments
     cost = np.full((S, S), 10.0)           # above max_cost: no joint
     for e in truth | wrong:
@@ -209,7 +206,6 @@ def test_kept_pair_stays_linked_inside_a_junction():
         cost[i, j] = cost[j, i] = v         # the false pairs in the group fit worse
     keep = np.zeros((S, S), bool)
     keep[a, c] = keep[c, a] = True
-    edges = np.array([sorted(e) for e in wrong])
     rec = []
     star = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=3.0,
                              record=rec)
