@@ -48,7 +48,7 @@ COST_WEIGHT = 1.0   # the star's summed joint cost beside the summed relative ro
 
 
 class Junction(NamedTuple):
-    """A group of segments re-linked as a star: segments (sorted), the hub chosen, and
+    """A group of segments re-linked around a hub (``_star``): segments (sorted), the hub, and
     spread_m, the largest median distance between two of the group's joints on a shared
     segment (how far apart the joints are that the data can barely tell apart)."""
 

@@ -6,11 +6,11 @@ variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every 
 (noise-normalised joint-fit residual) - both on 6 Hz low-passed data when the data is noisy,
 ``skeleton.topology`` (MST; pairs whose fit is a hinge within the noise are taken first),
 ``skeleton.junctions`` (segments meeting at one point re-linked around their hub, sure hinge
-pairs kept), root = tree centre, then a refined joint fit per tree edge. Segments without a usable frame (two
-markers, or markers within the noise of a line) are fitted in world coordinates from a
-closed-form start, re-searched from many starts where the tree could take them; their cheap
-pairs are then re-tested with an anchor joint completing their frame (``_Completed``; a
-completed segment lends its frame on down a chain of 2-marker segments).
+pairs kept), root = tree centre, then a refined joint fit per tree edge. Segments without
+a usable frame (two markers, or markers within the noise of a line) are fitted in world
+coordinates from a closed-form start, re-searched from many starts where the tree could
+take them; their cheap pairs are then re-tested with an anchor joint completing their frame
+(``_Completed``; a completed segment lends its frame on down a chain of 2-marker segments).
 Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
