@@ -1,7 +1,9 @@
 """Skeleton solver on random simulated figures: topology success, joint-centre error, time.
 
 Usage: python benchmarks/bench_skeleton.py [n_figures=50] [n_frames=600] [seed_bases=1000]
-(0 figures: only the largest case; seed_bases: comma-separated, e.g.
+[noise_mm=0,1]
+(0 figures: only the largest case; noise_mm: comma-separated marker noise levels of the seed
+sets, the largest case always runs at 0 and 1 mm; seed_bases: comma-separated, e.g.
 1000,2000,3000,4000,5000,6000 - 1000 is the acceptance set (the figures of
 tests/skeleton/test_random_figures.py); the solver's constants were chosen looking at
 1000-4000; 5000 and 6000 were first looked at for the frameless-segment and anchor rules;
@@ -79,8 +81,9 @@ def failure(fig, res) -> str:
     return "; ".join(out)
 
 
-def main(n_fig=50, n_frames=600, bases="1000"):
-    for base, noise in [(int(b), n) for b in str(bases).split(",") for n in (0.0, 1e-3)
+def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1"):
+    noises = [float(n) * 1e-3 for n in str(noises_mm).split(",")]
+    for base, noise in [(int(b), n) for b in str(bases).split(",") for n in noises
                         ] if n_fig > 0 else ():
         ok, errs, times, kept, close = 0, [], [], [], 0
         for k in range(n_fig):
@@ -121,4 +124,4 @@ def main(n_fig=50, n_frames=600, bases="1000"):
 
 
 if __name__ == "__main__":
-    main(*(int(a) if i < 2 else a for i, a in enumerate(sys.argv[1:])))
+    main(*(int(a) if i < 2 else a for i, a in enumerate(sys.argv[1:5])))
