@@ -92,6 +92,24 @@ def test_pipeline_segments_low_passed_data(seed):
     assert len(pairs) == fig.n_segments
 
 
+def test_noise_free_segment_cut_by_the_spectral_step_is_merged_back():
+    """Seed 12045, noise-free: the spectral step (degenerate: every within-segment SD is 0)
+    cut 4-marker segment 5 into 2 + 2; the rigidity merge joins the halves (every SD
+    across them is 0), and two clusters that are not rigid to each other stay apart."""
+    from skeleton.segments import _merge_rigid
+    fig, mo = _figure(12045)
+    seg = segment_markers(mo.markers, None, rng=0)
+    assert _same_partition(fig, seg), (seg.n_segments, fig.n_segments)
+    halves = fig.marker_segment.copy()
+    five = np.flatnonzero(halves == 5)
+    assert five.size == 4
+    halves[five[:2]] = fig.n_segments                       # segment 5 cut in two
+    merged = _merge_rigid(seg.distance_sd, halves, 1e-4)
+    assert len(np.unique(merged)) == fig.n_segments
+    assert len(set(merged[five])) == 1
+    assert (merged[fig.marker_segment != 5] == fig.marker_segment[fig.marker_segment != 5]).all()
+
+
 def test_noise_free_close_pair_across_a_joint():
     """Seed 2003 with 10 mm markers (at least 12 mm apart): two segments whose cross
     distances have SDs <= 2.1 mm. Noise-free, the scale follows the data (no fixed mm floor)
