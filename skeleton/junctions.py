@@ -57,6 +57,13 @@ class Junction(NamedTuple):
     spread_m: float
 
 
+def _root(parent, k):
+    """Union-find: the representative of ``k`` (``parent``: a list or dict, k -> parent)."""
+    while parent[k] != k:
+        k = parent[k]
+    return k
+
+
 def _gap(ca, aa, cb, ab) -> np.ndarray:
     """(T,) distance between two joints: centres (T, 3); a hinge's (axis (T, 3), else None)
     centre is anywhere on its axis, so the distance is taken to that line."""
@@ -79,12 +86,6 @@ def junction_groups(edges, centres: dict, tol_m: float, axes: dict | None = None
     axes = axes or {}
     edges = [tuple(int(v) for v in e) for e in edges]
     lab = {e: k for k, e in enumerate(edges)}
-
-    def root(k):
-        while parent[k] != k:
-            k = parent[k]
-        return k
-
     parent = list(range(len(edges)))
     for i, e in enumerate(edges):
         for j in range(i + 1, len(edges)):
@@ -94,10 +95,10 @@ def junction_groups(edges, centres: dict, tol_m: float, axes: dict | None = None
             fe, ff = frozenset(e), frozenset(f)
             d = _gap(centres[fe], axes.get(fe), centres[ff], axes.get(ff))
             if np.isfinite(d).any() and np.nanmedian(d) < tol_m:
-                parent[root(lab[f])] = root(i)
+                parent[_root(parent, lab[f])] = _root(parent, i)
     out: dict[int, set] = {}
     for i, e in enumerate(edges):
-        out.setdefault(root(i), set()).update(e)
+        out.setdefault(_root(parent, i), set()).update(e)
     return [g for g in out.values() if len(g) >= 3]
 
 
@@ -136,12 +137,6 @@ def _star(grp: set, hub: int, keep, cost: np.ndarray) -> set:
     of their two hub links (cheapest first, as long as they make no cycle), then the hub's
     star, cheapest link first, for the members not yet linked."""
     lab = {m: m for m in grp}
-
-    def root(v):
-        while lab[v] != v:
-            v = lab[v]
-        return v
-
     nodes = sorted(grp)
     kept = [] if keep is None else sorted(
         ((a, b) for i, a in enumerate(nodes) for b in nodes[i + 1:] if keep[a, b]
@@ -150,7 +145,7 @@ def _star(grp: set, hub: int, keep, cost: np.ndarray) -> set:
     star = sorted(((hub, m) for m in nodes if m != hub), key=lambda e: cost[e])
     out = set()
     for a, b in kept + star:
-        ra, rb = root(a), root(b)
+        ra, rb = _root(lab, a), _root(lab, b)
         if ra != rb:
             lab[ra] = rb
             out.add(frozenset((a, b)))

@@ -13,9 +13,9 @@ normally on the same segment). Nothing assumes a noise level in millimetres.
 3. Rigidity (automatic K only): a cluster holding a pair whose distance SD exceeds 4x the
    noise level is not one rigid body; it is split in two (complete linkage) until every
    cluster is rigid. Then two clusters rigid to each other (every pair across them within
-   1.5x the noise level, 0.1 mm at least) are merged, closest first (stop 12: over seed sets 1000-12000 and six
-   noise conditions, 3,600 segmentations, this changed one: noise-free seed 12045, a 4-marker
-   segment the spectral step had cut in two, now right).
+   1.5x the noise level, 0.1 mm at least) are merged, closest first (stop 12: over seed sets
+   1000-12000 and six noise conditions, 3,600 segmentations, this changed one: noise-free
+   seed 12045, a 4-marker segment the spectral step had cut in two, now right).
 4. Each marker moves to the cluster with the smallest mean squared distance SD to its members
    (fixes markers near a joint that the affinity attached to the neighbouring segment).
 
@@ -53,8 +53,9 @@ noise level (2.52 / 2.49 mm), largest within-segment SD (2.76x / 2.80x) and smal
 cross-segment SD (1.70x / 1.72x the level) barely move.
 
 Remaining failures on raw data are segment pairs whose every cross distance varies by less
-than ~2x the noise (seed 2003: two segments, all cross SDs <= 2.6 mm at 1 mm noise, 2.1 mm noise-free,
-so a rigidity threshold loose enough for the real arm recording cannot split them); the
+than ~2x the noise (seed 2003: two segments, all cross SDs <= 2.6 mm at 1 mm noise, 2.1 mm
+noise-free, so a rigidity threshold loose enough for the real arm recording cannot split
+them); the
 2-3 mm failures have not been analysed one by one. Conventions: docs/conventions.md [arrays]
 (NaN gaps).
 """
