@@ -7,7 +7,9 @@ pulse to host time through the sync box's clock fit, and assigns each frame to t
 pulse within half a period (frame time minus the camera's timestamp offset). A frame set
 is emitted when every live camera has delivered, or ``max_wait_s`` after its pulse; a frame
 arriving after its set left counts as late; a frame with no pulse within half a period
-counts as unmatched. Without a sync box, pulses are a virtual train at ``rate_hz``.
+counts as unmatched (once a later pulse has arrived: pulses come in order, so a frame whose
+pulse is only delayed - a stalled serial line or reader on a loaded host - waits for it, up
+to ``max_wait_cap_s``). Without a sync box, pulses are a virtual train at ``rate_hz``.
 
 Faults: a camera that disappears is reported and the session goes on with the others; a
 sync box fault (disconnected, garbage) stops the session and is re-raised by ``run``/``stop``
@@ -185,6 +187,7 @@ class CaptureSession:
         self._n_sets = self._n_complete = 0
         self._t_start = 0
         self._virtual_t0: float | None = None
+        self._last_pulse_ns = -np.inf   # host time of the latest pulse received
         self._matcher: threading.Thread | None = None
         self.error: CaptureError | None = None
         self._draining = False
@@ -370,6 +373,7 @@ class CaptureSession:
             if not np.isfinite(host):
                 continue  # clock not fitted yet (first milliseconds): cannot place it
             self._add_slot((p.epoch, p.index), host)
+            self._last_pulse_ns = max(self._last_pulse_ns, host)
 
     def _add_slot(self, key, host_ns) -> _Slot:
         s = self._slots.get(key)
@@ -430,7 +434,13 @@ class CaptureSession:
         else:
             slot = self._nearest(t)
             if slot is None:
-                if time.monotonic_ns() - t > self.max_wait_ns:
+                # Pulses arrive in order: once a later one is in, this frame's pulse was
+                # lost. Until then it may only be late (the serial line or its reader
+                # stalled: a loaded host), so the frame waits up to the cap for it.
+                wait = (self.max_wait_cap_ns if self.adaptive_wait and not self._draining
+                        else self.max_wait_ns)
+                if (self._last_pulse_ns > t + self.period_ns / 2
+                        or time.monotonic_ns() - t > wait):
                     c.unmatched += 1
                     return True
                 return False

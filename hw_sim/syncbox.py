@@ -83,6 +83,7 @@ class SimSyncBox:
         self._t0_ticks = 0
         self._period_ticks = 0.0
         self.pulse_loss = 0.0          # probability a PULSE message is not sent
+        self._hold_until = 0           # host ns: every outgoing message held back until then
         self.split_writes = False      # deliver frames in random small pieces
         self.pulses_emitted = 0
         self.dropped_bytes = 0
@@ -147,6 +148,15 @@ class SimSyncBox:
                                                minor=PROTOCOL_VERSION[1],
                                                tick_hz=self.tick_hz))
             self._outq.append((self._boot_host_ns, boot))
+
+    def stall(self, seconds: float) -> None:
+        """The serial line stalls for ``seconds`` (a USB-serial bridge stalling, or a host too
+        loaded to read): every message of that time - pulses, replies - leaves in order, in
+        one burst, at its end, while the trigger line, and so the cameras, keep running."""
+        if not seconds >= 0:
+            raise ValueError(f"seconds={seconds!r}, expected >= 0")
+        with self._lock:
+            self._hold_until = time.monotonic_ns() + int(seconds * 1e9)
 
     def disappear(self) -> None:
         """The box is unplugged: the pty closes under the host."""
@@ -282,7 +292,12 @@ class SimSyncBox:
         self.pulses_emitted += 1
         if self.pulse_loss > 0 and self.rng.random() < self.pulse_loss:
             return
-        self._send_now(encode_message(Message.make(MsgType.PULSE, index=index, ticks=ticks)))
+        msg = encode_message(Message.make(MsgType.PULSE, index=index, ticks=ticks))
+        now = time.monotonic_ns()
+        if now < self._hold_until or any(q[0] <= now for q in self._outq):
+            self._outq.append((now, msg))   # behind what a stall held back, in order
+        else:
+            self._send_now(msg)
 
     def _loop(self) -> None:
         splitter = FrameSplitter()
@@ -298,13 +313,13 @@ class SimSyncBox:
                         self._next_index += 1
                         continue
                     wake = min(wake, due)
-                ready = [q for q in self._outq if q[0] <= now]
+                ready = [q for q in self._outq if q[0] <= now] if now >= self._hold_until else []
                 if ready:
                     self._outq = [q for q in self._outq if q[0] > now]
                     for _, data in sorted(ready, key=lambda q: q[0]):
                         self._send_now(data)
                 if self._outq:
-                    wake = min(wake, min(q[0] for q in self._outq))
+                    wake = min(wake, max(self._hold_until, min(q[0] for q in self._outq)))
             timeout = max(0.0, (wake - time.monotonic_ns()) * 1e-9)
             try:
                 r, _, _ = select.select([self._master], [], [], timeout)

@@ -1,4 +1,5 @@
 """Live sessions on the simulated rig: matching to pulses, statistics and faults."""
+import threading
 import time
 
 import numpy as np
@@ -271,3 +272,23 @@ def test_session_survives_a_sync_box_reset(rig):
     after = [fs for fs in sets if fs.epoch == 1]
     assert len(after) >= 20 and all(fs.complete for fs in after[2:])
     assert st.cameras[0].connected
+
+
+def test_stalled_pulses_still_match_their_frames(rig):
+    """The serial line stalls 0.3 s (beyond the default 0.13 s wait for missing cameras):
+    frames whose pulse has not arrived wait for it instead of counting as unmatched."""
+    sim, box, cams = rig
+    sets = []
+    timer = threading.Timer(0.3, sim.stall, args=(0.3,))
+    timer.start()
+    st = CaptureSession(cams, box, on_frame_set=sets.append).run(DURATION_S)
+    timer.join()
+    _check_matching(sets, cams)
+    assert [s.index for s in sets] == list(range(len(sets)))
+    assert np.all(np.diff([s.host_ns for s in sets]) > 0)
+    for i, c in enumerate(st.cameras):
+        assert c.unmatched == 0, (i, c)
+        assert c.frames == sum(fs.frames[i] is not None for fs in sets) + c.late
+    # the stalled pulses' sets are there, with their frames
+    stalled = [fs for fs in sets if 0.35e9 < fs.host_ns - sets[0].host_ns < 0.55e9]
+    assert len(stalled) >= 10 and all(fs.complete for fs in stalled)
