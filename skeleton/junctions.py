@@ -31,6 +31,19 @@ the hub (its true joint a hinge at 0.87x and 0.96x the floor, the hub link 1.04x
 23 degrees apart fit a false hinge at 1.2x, against their hub links at 0.54x and 0.98x).
 Exact topology over seed sets 1000+ to 10000+ of benchmarks/bench_skeleton.py (1 mm
 noise): 484 -> 486 of 500, no figure lost.
+Groups are found by centre distance, except where a centre is unreliable: the fitted joint
+of two 2-marker segments (or a world fit of one) may lie anywhere their few markers allow,
+tens of mm off the point the segments share, so siblings linked to each other form no group
+with their parent (seeds 12011, 12039, 13011, 13043: sibling joints 0.0-7.1 mm apart, the
+false pair's centre 44-266 mm off). Two tree edges sharing a segment are therefore also
+grouped when one edge's ball centre is a fixed point of the other edge's far segment: the
+RMS sd of that segment's marker distances to it is at most ``FIXED_K`` x the joint-cost
+floor. On the solver's trees over seed sets 1000+ to 14000+ (1 mm noise; 13,131 edge pairs
+the distance test left apart), centres within 2 mm of the far segment's true pivot scored
+2.0-2.6x the floor, those 35 mm or more away 17x at the 10th percentile (4 of 12,948 at or
+below 4x, all on 2-marker far segments, whose two distances leave a circle free); exact
+topology 675 -> 679 of 700, none lost (a threshold of 10x: +6, -4). A group so found takes
+as its junction point the ball centre most nearly fixed in every member, not the mean.
 Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
@@ -43,6 +56,8 @@ __all__ = ["Junction", "junction_groups", "relative_spread", "resolve_junctions"
 
 SPREAD_FRAMES = 200
 SPLIT_DEPTH = 2     # a group without a hub is split at half the tolerance, at most this often
+FIXED_FRAMES = 200  # frames sampled for the fixed-point test of junction_groups
+FIXED_K = 4.0       # ... its threshold, x the joint-cost floor (see the module docstring)
 COST_WEIGHT = 1.0   # the star's summed joint cost beside the summed relative rotation, each
                     # over its mean across the candidate hubs
 
@@ -75,14 +90,31 @@ def _gap(ca, aa, cb, ab) -> np.ndarray:
     return np.linalg.norm(d, axis=1) if not gaps else np.fmin.reduce(gaps)
 
 
-def junction_groups(edges, centres: dict, tol_m: float, axes: dict | None = None
+def _sphere_sd(traj: np.ndarray, idx, c: np.ndarray) -> float:
+    """RMS over the markers ``idx`` of the sd over time of their distance to the point
+    ``c`` (T, 3): ~0 when c is fixed in their segment."""
+    T = traj.shape[0]
+    sel = np.linspace(0, T - 1, min(T, FIXED_FRAMES)).astype(int)
+    d = np.linalg.norm(traj[sel][:, np.asarray(idx, int)] - c[sel][:, None], axis=2)
+    ok = ~np.isnan(d).any(1)
+    if ok.sum() < 10:
+        return np.inf
+    return float(np.sqrt(np.mean(np.var(d[ok], axis=0))))
+
+
+def junction_groups(edges, centres: dict, tol_m: float, axes: dict | None = None,
+                    traj: np.ndarray | None = None, members=None, floor_m: float = 0.0
                     ) -> list[set]:
     """Groups (>= 3 segments) linked by tree edges whose joint centres coincide.
 
     ``edges``: (S-1, 2) tree edges; ``centres[frozenset(edge)]``: (T, 3) world joint centre
     of that edge (NaN where unknown); ``axes[frozenset(edge)]``: (T, 3) hinge axis or None.
     Two edges sharing a segment are merged when the median distance between their joints
-    is below ``tol_m``."""
+    is below ``tol_m``, or - given ``traj`` (T, M, 3), ``members`` and ``floor_m`` (what a
+    true joint's cost scores) - when one edge's ball-joint centre is a fixed point of the
+    other edge's far segment too (its markers' distances to it vary by at most ``FIXED_K``
+    x ``floor_m``, RMS of their sds): two 2-marker segments' fitted centre can lie anywhere
+    their markers allow, far from the point they share (see the module docstring)."""
     axes = axes or {}
     edges = [tuple(int(v) for v in e) for e in edges]
     lab = {e: k for k, e in enumerate(edges)}
@@ -94,7 +126,12 @@ def junction_groups(edges, centres: dict, tol_m: float, axes: dict | None = None
                 continue
             fe, ff = frozenset(e), frozenset(f)
             d = _gap(centres[fe], axes.get(fe), centres[ff], axes.get(ff))
-            if np.isfinite(d).any() and np.nanmedian(d) < tol_m:
+            near = bool(np.isfinite(d).any() and np.nanmedian(d) < tol_m)
+            if not near and traj is not None:
+                near = any(axes.get(g) is None and _sphere_sd(
+                    traj, members[next(iter(h - g))], centres[g]) <= FIXED_K * floor_m
+                    for g, h in ((fe, ff), (ff, fe)))
+            if near:
                 parent[_root(parent, lab[f])] = _root(parent, i)
     out: dict[int, set] = {}
     for i, e in enumerate(edges):
@@ -155,7 +192,7 @@ def _star(grp: set, hub: int, keep, cost: np.ndarray) -> set:
 def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.ndarray,
                       tol_m: float, max_cost: float, axes: dict | None = None,
                       recost=None, is_hinge=None, record: list | None = None,
-                      keep: np.ndarray | None = None) -> np.ndarray:
+                      keep: np.ndarray | None = None, floor_m: float = 0.0) -> np.ndarray:
     """Tree edges (S-1, 2) with every junction group re-linked as a star around its hub
     (see the module docstring). A member whose star would use an edge costing more than
     ``max_cost`` is no candidate hub (a group without candidates is split, see the module
@@ -168,7 +205,9 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
     hinge edges are kept before the relative-rotation prior chooses among them.
     ``record``, when given, gets a ``Junction`` per group re-linked around a hub.
     ``keep`` (S, S) bool, when given: pairs the re-link keeps linked (the tree's sure hinge
-    pairs); a member kept to another is hung from it instead of the hub."""
+    pairs); a member kept to another is hung from it instead of the hub. ``floor_m`` > 0:
+    what a true joint's cost scores on ``traj``; groups are then also found by the
+    fixed-point test of ``junction_groups``."""
     edges = {frozenset(int(v) for v in e) for e in edges}
     cost = np.array(cost, float)
 
@@ -198,6 +237,14 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
         inner = [e for e in edges if e <= grp]
         ball = [e for e in inner if axes.get(e) is None] or inner   # a hinge's centre is
         c = np.nanmean(np.stack([centres[e] for e in ball]), axis=0)   # arbitrary on its axis
+        apart = [np.linalg.norm(centres[e] - centres[f], axis=1)
+                 for i, e in enumerate(ball) for f in ball[i + 1:]]
+        if traj is not None and floor_m > 0 and any(
+                np.isfinite(d).any() and np.nanmedian(d) >= tol for d in apart):
+            # found by the fixed-point test: a centre lies off the junction - take the ball
+            # centre most nearly fixed in every member instead of the mean
+            c = centres[min(ball, key=lambda e: np.mean(
+                [_sphere_sd(traj, members[m], centres[e]) for m in grp]))]
         # Siblings linked among themselves leave their parent outside the group when their
         # fitted centres scatter (two-marker segments): a tree neighbour that fits a joint
         # with every member is a hub candidate too, and the group grows by it if it wins.
@@ -214,7 +261,8 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
             # resolved instead.
             if depth < SPLIT_DEPTH:
                 for g in junction_groups(sorted(tuple(sorted(e)) for e in inner), centres,
-                                         tol / 2, axes):
+                                         tol / 2, axes, traj if floor_m > 0 else None,
+                                         members, floor_m):
                     edges = relink(edges, g, tol / 2, depth + 1)
             return edges
         if record is not None:
@@ -226,6 +274,6 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
         return (edges - set(inner)) | _star(grp, hub, keep, cost)
 
     for grp in junction_groups(sorted(tuple(sorted(e)) for e in edges), centres, tol_m,
-                               axes):
+                               axes, traj if floor_m > 0 else None, members, floor_m):
         edges = relink(edges, grp, tol_m, 0)
     return np.array(sorted(tuple(sorted(e)) for e in edges), dtype=np.int64).reshape(-1, 2)

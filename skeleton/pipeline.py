@@ -334,7 +334,7 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                   recost=lambda a, b: joint_cost(smooth, members[a], members[b],
                                                                  min_quality=min_q),
                                   is_hinge=lambda a, b: fit(a, b).hinge, record=junctions,
-                                  keep=sure)
+                                  keep=sure, floor_m=floor)
         top = tree_from_edges(S, edges)
         for jn in junctions:
             say(f"junction: segments {', '.join(map(str, jn.segments))}, joints within "

@@ -238,3 +238,16 @@ def test_sure_hinge_chain_kept_inside_a_junction(seed, parent, child):
     res = solve_skeleton(noisy, mo.rate_hz, rng=0)
     assert any(len(j.segments) >= 4 for j in res.junctions)
     assert exact_topology(fig, res)
+
+
+@pytest.mark.parametrize("seed,a,b", [(12011, 10, 12), (13043, 13, 15)])
+def test_siblings_found_meeting_by_a_fixed_point(seed, a, b):
+    """Seeds 12011 and 13043 (1 mm noise): siblings a and b (2+2 and 4+2 markers) whose
+    joints on their parent lie 1.9 and 0.0 mm apart were linked to each other, and that
+    pair's fitted centre lay 44 mm and more off the junction, so no junction group was
+    found by centre distance. The parent's joint centre is a fixed point of the sibling
+    (``skeleton.junctions.junction_groups``): the group is found and re-linked."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(seed)
+    assert fig.parents[a] == fig.parents[b]
+    assert np.linalg.norm(fig.joint_offsets[a] - fig.joint_offsets[b]) < 2e-3
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))

@@ -218,3 +218,31 @@ def test_kept_pair_stays_linked_inside_a_junction():
     out = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=3.0,
                             keep=keep)
     assert {frozenset(map(int, e)) for e in out} == wrong
+
+
+@pytest.mark.parametrize("seed", [0, 300])
+def test_junction_found_from_a_fixed_point_when_a_centre_is_off(seed):
+    """Siblings a, b at one point on p, linked a-b, with that edge's centre 0.2 m off the
+    junction (where a two-marker pair's fit may put it): no group by centre distance, but
+    the p-a joint's centre is a fixed point of b, so the group is found and re-linked as the
+    truth. Moving b's joint 30 mm away from a's: no group."""
+    fig, p, a, b = _junction_figure(seed)
+    mo, members, truth, wrong, edges, centres = _swapped(fig, seed, (p, b), (a, b), a)
+    centres[frozenset((a, b))] = mo.joint_centres[:, a] + 0.2
+    floor = 1e-4
+    assert junction_groups(edges, centres, TOL_M) == []
+    assert junction_groups(edges, centres, TOL_M, traj=mo.markers, members=members,
+                           floor_m=floor) == [{p, a, b}]
+    cost = np.zeros((fig.n_segments,) * 2)
+    out = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=1.0,
+                            floor_m=floor)
+    assert {frozenset(map(int, e)) for e in out} == truth
+    off = np.array(fig.joint_offsets)
+    away = fig.joint_offsets[a] - fig.joint_offsets[p] if p else fig.joint_offsets[a]
+    off[b] = off[a] + 0.03 * np.cross(away, [0.0, 0.0, 1.0]) / np.linalg.norm(
+        np.cross(away, [0.0, 0.0, 1.0]))
+    far = dataclasses.replace(fig, joint_offsets=off)
+    mo, members, truth, wrong, edges, centres = _swapped(far, seed, (p, b), (a, b), a)
+    centres[frozenset((a, b))] = mo.joint_centres[:, a] + 0.2
+    assert junction_groups(edges, centres, TOL_M, traj=mo.markers, members=members,
+                           floor_m=floor) == []
