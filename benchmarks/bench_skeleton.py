@@ -12,7 +12,8 @@ noise) as the held-out estimate; two rules came from their failures since (6b6d4
 7013, 7048; d63c730: 8033, 8039); 11000-14000 were first run at stops 12-13, and the
 fixed-point junction test (0e61224) was chosen on the failures of 1000-14000; 15000, 16000
 and 17000 were first run at stop 13, with the code before and after that test (45, 50, 49
--> 47, 50, 49 of 50 with 1 mm noise): the untouched ones now)
+-> 47, 50, 49 of 50 with 1 mm noise), 18000 and 19000 on the final code of stop 13 (47 and
+50): the untouched ones now)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
