@@ -52,7 +52,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Junction", "junction_groups", "relative_spread", "resolve_junctions"]
+__all__ = ["Junction", "joint_spread", "junction_groups", "relative_spread",
+           "resolve_junctions"]
 
 SPREAD_FRAMES = 200
 SPLIT_DEPTH = 2     # a group without a hub is split at half the tolerance, at most this often
@@ -65,7 +66,8 @@ COST_WEIGHT = 1.0   # the star's summed joint cost beside the summed relative ro
 class Junction(NamedTuple):
     """A group of segments re-linked around a hub (``_star``): segments (sorted), the hub, and
     spread_m, the largest median distance between two of the group's joints on a shared
-    segment (how far apart the joints are that the data can barely tell apart)."""
+    segment (how far apart the joints are that the data can barely tell apart; the solver
+    reports it over the final tree's joints, ``skeleton.pipeline``)."""
 
     segments: tuple[int, ...]
     hub: int
@@ -88,6 +90,18 @@ def _gap(ca, aa, cb, ab) -> np.ndarray:
         if ax is not None:
             gaps.append(np.linalg.norm(d - (d * ax).sum(1, keepdims=True) * ax, axis=1))
     return np.linalg.norm(d, axis=1) if not gaps else np.fmin.reduce(gaps)
+
+
+def joint_spread(edges, centres: dict, axes: dict | None = None) -> float:
+    """The largest median distance (m) between the joints of two ``edges`` (frozensets) that
+    share a segment (``_gap``: to a hinge's axis line); NaN without such a pair."""
+    axes = axes or {}
+    edges = list(edges)
+    gaps = [np.nanmedian(_gap(centres[e], axes.get(e), centres[f], axes.get(f)))
+            for i, e in enumerate(edges) for f in edges[i + 1:]
+            if e & f and np.isfinite(centres[e]).any() and np.isfinite(centres[f]).any()]
+    gaps = [g for g in gaps if np.isfinite(g)]
+    return float(max(gaps)) if gaps else float("nan")
 
 
 def _sphere_sd(traj: np.ndarray, idx, c: np.ndarray) -> float:
@@ -266,11 +280,8 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
                     edges = relink(edges, g, tol / 2, depth + 1)
             return edges
         if record is not None:
-            gaps = [np.nanmedian(_gap(centres[e], axes.get(e), centres[f], axes.get(f)))
-                    for i, e in enumerate(inner) for f in inner[i + 1:] if e & f]
-            gaps = [g for g in gaps if np.isfinite(g)]
             record.append(Junction(tuple(sorted(int(m) for m in grp)), int(hub),
-                                   float(max(gaps)) if gaps else float("nan")))
+                                   joint_spread(inner, centres, axes)))
         return (edges - set(inner)) | _star(grp, hub, keep, cost)
 
     for grp in junction_groups(sorted(tuple(sorted(e)) for e in edges), centres, tol_m,

@@ -23,7 +23,7 @@ from scipy.signal import butter, sosfiltfilt
 
 from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_cost
 from skeleton.segments import distance_sd, noise_sd, segment_markers
-from skeleton.junctions import Junction, resolve_junctions
+from skeleton.junctions import Junction, joint_spread, resolve_junctions
 from skeleton.topology import skeleton_tree, tree_from_edges
 
 __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
@@ -336,6 +336,14 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                   is_hinge=lambda a, b: fit(a, b).hinge, record=junctions,
                                   keep=sure, floor_m=floor)
         top = tree_from_edges(S, edges)
+        # each junction's spread over its final joints (a centre the group was found around
+        # may lie off the junction: skeleton.junctions' fixed-point test)
+        for k, jn in enumerate(junctions):
+            final = {frozenset((int(top.parents[c]), int(c))): fit(int(top.parents[c]), int(c))
+                     for c in jn.segments if top.parents[c] in jn.segments}
+            junctions[k] = jn._replace(spread_m=joint_spread(
+                final, {e: f.world for e, f in final.items()},
+                {e: f.axis_world for e, f in final.items()}))
         for jn in junctions:
             say(f"junction: segments {', '.join(map(str, jn.segments))}, joints within "
                 f"{jn.spread_m * 1e3:.1f} mm; hub {jn.hub} (relative rotation + joint costs)")
