@@ -124,8 +124,8 @@ def junction_groups(edges, centres: dict, tol_m: float, axes: dict | None = None
     ``edges``: (S-1, 2) tree edges; ``centres[frozenset(edge)]``: (T, 3) world joint centre
     of that edge (NaN where unknown); ``axes[frozenset(edge)]``: (T, 3) hinge axis or None.
     Two edges sharing a segment are merged when the median distance between their joints
-    is below ``tol_m``, or - given ``traj`` (T, M, 3), ``members`` and ``floor_m`` (what a
-    true joint's cost scores) - when one edge's ball-joint centre is a fixed point of the
+    is below ``tol_m``, or - given ``traj`` (T, M, 3), ``members`` and ``floor_m`` > 0 (what
+    a true joint's cost scores) - when one edge's ball-joint centre is a fixed point of the
     other edge's far segment too (its markers' distances to it vary by at most ``FIXED_K``
     x ``floor_m``, RMS of their sds): two 2-marker segments' fitted centre can lie anywhere
     their markers allow, far from the point they share (see the module docstring)."""
@@ -141,7 +141,7 @@ def junction_groups(edges, centres: dict, tol_m: float, axes: dict | None = None
             fe, ff = frozenset(e), frozenset(f)
             d = _gap(centres[fe], axes.get(fe), centres[ff], axes.get(ff))
             near = bool(np.isfinite(d).any() and np.nanmedian(d) < tol_m)
-            if not near and traj is not None:
+            if not near and traj is not None and floor_m > 0:
                 near = any(axes.get(g) is None and _sphere_sd(
                     traj, members[next(iter(h - g))], centres[g]) <= FIXED_K * floor_m
                     for g, h in ((fe, ff), (ff, fe)))
@@ -253,7 +253,7 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
         c = np.nanmean(np.stack([centres[e] for e in ball]), axis=0)   # arbitrary on its axis
         apart = [np.linalg.norm(centres[e] - centres[f], axis=1)
                  for i, e in enumerate(ball) for f in ball[i + 1:]]
-        if traj is not None and floor_m > 0 and any(
+        if floor_m > 0 and any(
                 np.isfinite(d).any() and np.nanmedian(d) >= tol for d in apart):
             # found by the fixed-point test: a centre lies off the junction - take the ball
             # centre most nearly fixed in every member instead of the mean
@@ -275,8 +275,7 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
             # resolved instead.
             if depth < SPLIT_DEPTH:
                 for g in junction_groups(sorted(tuple(sorted(e)) for e in inner), centres,
-                                         tol / 2, axes, traj if floor_m > 0 else None,
-                                         members, floor_m):
+                                         tol / 2, axes, traj, members, floor_m):
                     edges = relink(edges, g, tol / 2, depth + 1)
             return edges
         if record is not None:
@@ -285,6 +284,6 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
         return (edges - set(inner)) | _star(grp, hub, keep, cost)
 
     for grp in junction_groups(sorted(tuple(sorted(e)) for e in edges), centres, tol_m,
-                               axes, traj if floor_m > 0 else None, members, floor_m):
+                               axes, traj, members, floor_m):
         edges = relink(edges, grp, tol_m, 0)
     return np.array(sorted(tuple(sorted(e)) for e in edges), dtype=np.int64).reshape(-1, 2)
