@@ -15,7 +15,7 @@ Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -203,6 +203,64 @@ class _Completed:
         return True
 
 
+def _completed_fits(data, members, parents, fits: dict, min_q: float) -> dict:
+    """Final joints of the tree between two frameless segments (world-frame fits,
+    ``JointFit.ref`` -1), re-fitted in the frame of one of them completed by a joint it has
+    with a segment that has a frame (``_anchor_points``' idea on the final tree): that joint
+    is fixed in it, a third point. Its frame's roll about the marker line is then known, and
+    the other segment's markers get a sphere fit in it, where the world fit only has four
+    marker distances to place a centre each frame. A completed segment passes its new joint
+    on down a chain of frameless segments. ``fits``: child -> JointFit of the final tree
+    (parents[s], s). Returns the re-fitted ones (child -> JointFit, ``ref`` 0 or 1 naming
+    the completed side; ``hinge`` only where that frame's first full frame is its markers')."""
+    world = {s for s, f in fits.items() if f.ok and f.ref == -1}
+    if not world:
+        return {}
+    anchor: dict[int, tuple[float, np.ndarray]] = {}      # segment -> (noise gain, point)
+
+    def offer(seg, point, ref_pts):
+        seen = np.flatnonzero(~np.isnan(point).any(1))
+        if seen.size == 0 or frame_quality(data, members[seg]) > min_q and members[seg].size > 2:
+            return
+        gain = _point_noise_gain(ref_pts(seen[0]), point[seen[0]])
+        if np.isfinite(gain) and (seg not in anchor or gain < anchor[seg][0]):
+            anchor[seg] = (gain, point)
+
+    for s, f in fits.items():
+        if f.ok and f.ref in (0, 1):
+            p = int(parents[s])
+            ref_seg, other = (p, s) if f.ref == 0 else (s, p)
+            offer(other, f.world, lambda t, r=ref_seg: data[t, members[r]])
+    out = {}
+    while True:
+        todo = [s for s in sorted(world - set(out)) if s in anchor or int(parents[s]) in anchor]
+        if not todo:
+            return out
+        for s in todo:
+            p = int(parents[s])
+            side = 0 if p in anchor else 1
+            done = p if side == 0 else s
+            ext = np.concatenate([data, anchor[done][1][:, None]], 1)
+            col = np.array([data.shape[1]])
+            mp = np.concatenate([members[p], col]) if side == 0 else members[p]
+            ms = np.concatenate([members[s], col]) if side == 1 else members[s]
+            ref_idx = mp if side == 0 else ms
+            f = None
+            if frame_quality(ext, ref_idx) > min_q:
+                f = fit_joint(ext, mp, ms, ref=side)
+            if f is None or not f.ok:
+                out[s] = fits[s]            # no usable completed frame: the world fit stays
+                continue
+            if f.hinge:
+                full = np.flatnonzero(~np.isnan(ext[:, ref_idx]).any(axis=(1, 2)))
+                own = np.flatnonzero(~np.isnan(data[:, members[done]]).any(axis=(1, 2)))
+                if full[0] != own[0]:
+                    f = replace(f, hinge=False, axis_local=np.full(3, np.nan), axis_world=None)
+            out[s] = f
+            nxt = s if side == 0 else p
+            offer(nxt, f.world, lambda t, e=ext, r=ref_idx: e[t, r])
+
+
 @dataclass(frozen=True, kw_only=True)
 class SkeletonResult:
     """labels (M,) segment per marker; n_segments; eigengap_k; root; parents (S,);
@@ -348,13 +406,11 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
             say(f"junction: segments {', '.join(map(str, jn.segments))}, joints within "
                 f"{jn.spread_m * 1e3:.1f} mm; hub {jn.hub} (relative rotation + joint costs)")
     say(f"topology: root segment {top.root}")
+    final = {int(s): fit(int(top.parents[s]), int(s)) for s in range(S) if top.parents[s] >= 0}
+    final.update(_completed_fits(fit_data, members, top.parents, final, min_q))
     jc = np.full((T, S, 3), np.nan)
     joints: list[JointFit | None] = [None] * S
-    for s in range(S):
-        p = top.parents[s]
-        if p < 0:
-            continue
-        f = fit(p, s)
+    for s, f in final.items():
         joints[s] = f
         jc[:, s] = f.world
     return SkeletonResult(labels=seg.labels, n_segments=S, eigengap_k=seg.eigengap_k,
