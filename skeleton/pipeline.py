@@ -394,20 +394,20 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                   is_hinge=lambda a, b: fit(a, b).hinge, record=junctions,
                                   keep=sure, floor_m=floor)
         top = tree_from_edges(S, edges)
-        # each junction's spread over its final joints (a centre the group was found around
-        # may lie off the junction: skeleton.junctions' fixed-point test)
-        for k, jn in enumerate(junctions):
-            final = {frozenset((int(top.parents[c]), int(c))): fit(int(top.parents[c]), int(c))
-                     for c in jn.segments if top.parents[c] in jn.segments}
-            junctions[k] = jn._replace(spread_m=joint_spread(
-                final, {e: f.world for e, f in final.items()},
-                {e: f.axis_world for e, f in final.items()}))
-        for jn in junctions:
-            say(f"junction: segments {', '.join(map(str, jn.segments))}, joints within "
-                f"{jn.spread_m * 1e3:.1f} mm; hub {jn.hub} (relative rotation + joint costs)")
-    say(f"topology: root segment {top.root}")
     final = {int(s): fit(int(top.parents[s]), int(s)) for s in range(S) if top.parents[s] >= 0}
     final.update(_completed_fits(fit_data, members, top.parents, final, min_q))
+    # each junction's spread over its final joints (a centre the group was found around may
+    # lie off the junction: skeleton.junctions' fixed-point test; a world fit is re-fitted
+    # by _completed_fits)
+    for k, jn in enumerate(junctions):
+        fj = {frozenset((int(top.parents[c]), int(c))): final[int(c)]
+              for c in jn.segments if top.parents[c] in jn.segments}
+        junctions[k] = jn._replace(spread_m=joint_spread(
+            fj, {e: f.world for e, f in fj.items()}, {e: f.axis_world for e, f in fj.items()}))
+        say(f"junction: segments {', '.join(map(str, jn.segments))}, joints within "
+            f"{junctions[k].spread_m * 1e3:.1f} mm; hub {jn.hub} (relative rotation + joint "
+            f"costs)")
+    say(f"topology: root segment {top.root}")
     jc = np.full((T, S, 3), np.nan)
     joints: list[JointFit | None] = [None] * S
     for s, f in final.items():
