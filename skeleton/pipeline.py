@@ -121,7 +121,8 @@ def _point_noise_gain(ref_pts: np.ndarray, point: np.ndarray) -> float:
     return float(np.sqrt(np.trace(C) / 3))
 
 
-def _anchor_points(data, members, cost, floor, frameless) -> tuple[dict, np.ndarray, dict]:
+def _anchor_points(data, members, cost, floor, frameless, min_quality: float = 0.0
+                   ) -> tuple[dict, np.ndarray, dict]:
     """For each frameless segment a: (p, J (T, 3)) - the joint with the cheapest segment p
     that has a frame, costing at most ANCHOR x ``floor``, whose centre the pose of p
     carries with noise at most ANCHOR_GAIN x the marker noise. J is a point fixed in a
@@ -132,20 +133,35 @@ def _anchor_points(data, members, cost, floor, frameless) -> tuple[dict, np.ndar
     round: a costlier neighbour is likelier a false sibling (seed 3022: its true parent's
     gain was 3.3, and the next one, completed later, was a sibling 31 mm away). (Tried:
     waiting for a cheaper frameless neighbour to be completed first - it anchored the
-    largest benchmark case's segment 7 on its false sibling 4.)
+    largest benchmark case's segment 7 on its false sibling 4.) A completed neighbour is
+    ranked by a's cost in its completed frame, not by the pair's world fit (two frameless
+    segments: four marker distances per frame leave that fit near the floor for false
+    siblings, and its closed-form start can be broken for true ones - seed 24010, 1 mm: the
+    true parent's world cost 1.2 m, 1.08x the floor in its completed frame; seed 25033: a
+    false sibling 21 mm away at 0.96x the floor, 1.98x in its completed frame).
     Returns the anchors, the data with the anchor points appended as extra markers, and
     each completed segment's column in it."""
     anchors, cols, ext = {}, {}, data
     has_frame = ~np.asarray(frameless, bool)
     too_noisy = set()       # (a, p) whose fit failed or was too noisy: same in later rounds
+    framed: dict[tuple, float] = {}     # (a, p): a's cost in p's completed frame
+
+    def frame_cost(a, p):
+        """a's cost against p: the matrix's, or - p completed - its fit in p's completed
+        frame (p's own cost with a, a world fit of two frameless segments, may be broken)"""
+        if p not in cols:
+            return cost[a, p]
+        if (a, p) not in framed:
+            framed[a, p] = joint_cost(ext, np.append(members[p], cols[p]), members[a],
+                                      min_quality=min_quality)
+        return framed[a, p]
+
     while True:
         new = {}
         for a in np.flatnonzero(~has_frame):
-            for p in np.argsort(cost[a]):
-                if not cost[a, p] <= ANCHOR * floor:
-                    break
-                if not has_frame[p]:
-                    continue
+            cand = [(frame_cost(a, p), int(p)) for p in np.flatnonzero(has_frame)
+                    if min(cost[a, p], frame_cost(a, p)) <= ANCHOR * floor]
+            for c, p in sorted(cand)[:1]:       # the cheapest neighbour with a frame, or none
                 if (a, p) in too_noisy:
                     break
                 ref = members[p] if p not in cols else np.append(members[p], cols[p])
@@ -156,7 +172,6 @@ def _anchor_points(data, members, cost, floor, frameless) -> tuple[dict, np.ndar
                     new[int(a)] = (int(p), f.world)
                 else:
                     too_noisy.add((a, p))
-                break       # the cheapest neighbour with a frame, or none
         if not new:
             return anchors, ext, cols
         for a in sorted(new):
@@ -176,7 +191,7 @@ class _Completed:
 
     def __init__(self, data, members, cost, floor, frameless, min_quality):
         self.anchors, self.ext, self.col = _anchor_points(data, members, cost, floor,
-                                                          frameless)
+                                                          frameless, min_quality)
         self.members, self.min_quality, self.raised = members, min_quality, 0
         self.costs: dict[tuple, float] = {}
 
@@ -190,10 +205,16 @@ class _Completed:
         at least: clean data is treated as noisy at that level); then ``cost`` (in place)
         takes it (when higher)."""
         if (i, j) not in self.costs:
+            # each completed frame on its own, against the other's bare markers: a true
+            # joint is fixed in each, a false one fails in at least one (seed 25033, 1 mm:
+            # false siblings 21 mm apart cost 1.98x and 4.57x the floor so, 1.75x with both
+            # frames completed at once)
             mi, mj = self.members[i], self.members[j]
-            mi = np.append(mi, self.col[i]) if i in self.anchors else mi
-            mj = np.append(mj, self.col[j]) if j in self.anchors else mj
-            self.costs[i, j] = joint_cost(self.ext, mi, mj, min_quality=self.min_quality)
+            self.costs[i, j] = max(
+                joint_cost(self.ext, np.append(mi, self.col[i]), mj,
+                           min_quality=self.min_quality) if i in self.anchors else 0.0,
+                joint_cost(self.ext, mi, np.append(mj, self.col[j]),
+                           min_quality=self.min_quality) if j in self.anchors else 0.0)
         c2 = self.costs[i, j]
         if not c2 > FALSIFY * max(floor, CLEAN_NOISE_M):
             return False
@@ -335,14 +356,19 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     for i, j in zip(*np.triu_indices(S, 1)):
         upper = RECHECK * floor if noisy else RECHECK_MIN_M
         if (frameless[i] and frameless[j] and 1.2 * floor < cost[i, j]
-                and (cost[i, j] < upper or cost[i, j] > BROKEN_M)
                 and _path_max(mst, cost, i, j) > PRUNE * floor):
             # a pair its completed frame rejects needs no search (the search only lowers
             # costs). On noise-free data the floor is ~1e-7 m: rejecting above FALSIFY x
             # that rejected true pairs (exact topology 49, 47, 49 of 50 on seed sets
-            # 2000/3000/6000), so clean data is rejected above FALSIFY x CLEAN_NOISE_M
-            if completed.applies(i, j) and completed.raise_false(cost, i, j, floor):
-                mst = skeleton_tree(cost)
+            # 2000/3000/6000), so clean data is rejected above FALSIFY x CLEAN_NOISE_M.
+            # Between `upper` and BROKEN_M a pair is searched only when its completed frames
+            # accept it (seed 25032, 1 mm: a true pair's closed-form start cost 3.7 mm, 13x
+            # the floor; completed, 0.9-1.1x)
+            if completed.applies(i, j):
+                if completed.raise_false(cost, i, j, floor):
+                    mst = skeleton_tree(cost)
+                    continue
+            elif upper <= cost[i, j] <= BROKEN_M:
                 continue
             pc = joint_cost(smooth, members[i], members[j], detail=True, min_quality=min_q)
             if pc.cost < cost[i, j]:

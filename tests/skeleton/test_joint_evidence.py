@@ -269,3 +269,14 @@ def test_no_joint_centre_runs_off(seed):
     assert exact_topology(fig, res)
     err = solver_joint_errors(fig, mo, res, segment_map(fig, res.labels))
     assert err.max() < 0.010, np.round(err * 1e3, 1)
+
+
+@pytest.mark.parametrize("seed", [24010, 25032, 25033, 25036])
+def test_frameless_pairs_judged_in_completed_frames(seed):
+    """Figures of benchmarks/bench_skeleton.py (1 mm noise) whose topology failed on two
+    2-marker siblings (joints 11-42 mm apart) until frameless segments were anchored by
+    their cost in a neighbour's completed frame, pairs falsified in each completed frame on
+    its own, and broken closed-form costs re-searched when the completed frames accept the
+    pair (``skeleton.pipeline._anchor_points``, ``_Completed``)."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(seed)
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
