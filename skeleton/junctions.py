@@ -225,9 +225,12 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
     edges = {frozenset(int(v) for v in e) for e in edges}
     cost = np.array(cost, float)
 
+    recosted: set = set()
+
     def ok(a, b):
-        if not cost[a, b] <= max_cost and recost is not None:
+        if not cost[a, b] <= max_cost and recost is not None and (a, b) not in recosted:
             cost[a, b] = cost[b, a] = min(cost[a, b], recost(a, b))
+            recosted.update(((a, b), (b, a)))     # once: a pair still too costly stays so
         return cost[a, b] <= max_cost
 
     axes = axes or {}

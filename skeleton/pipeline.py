@@ -224,14 +224,16 @@ class _Completed:
         return True
 
 
-def _completed_fits(data, members, parents, fits: dict, min_q: float) -> dict:
-    """Final joints of the tree between two frameless segments (world-frame fits,
+def _completed_fits(data, members, parents, fits: dict, min_q: float, memo: dict | None = None
+                    ) -> dict:
+    """Joints of a tree between two frameless segments (world-frame fits,
     ``JointFit.ref`` -1), re-fitted in the frame of one of them completed by a joint it has
-    with a segment that has a frame (``_anchor_points``' idea on the final tree): that joint
+    with a segment that has a frame (``_anchor_points``' idea on a tree): that joint
     is fixed in it, a third point. Its frame's roll about the marker line is then known, and
     the other segment's markers get a sphere fit in it, where the world fit only has four
     marker distances to place a centre each frame. A completed segment passes its new joint
-    on down a chain of frameless segments. ``fits``: child -> JointFit of the final tree
+    on down a chain of frameless segments (used on the tree the junctions are found in, and on
+    the final one). ``fits``: child -> JointFit of the tree
     (parents[s], s). Returns the re-fitted ones (child -> JointFit, ``ref`` 0 or 1 naming
     the completed side; ``hinge`` only where that frame's first full frame is its markers')."""
     world = {s for s, f in fits.items() if f.ok and f.ref == -1}
@@ -267,8 +269,13 @@ def _completed_fits(data, members, parents, fits: dict, min_q: float) -> dict:
             ms = np.concatenate([members[s], col]) if side == 1 else members[s]
             ref_idx = mp if side == 0 else ms
             f = None
-            if frame_quality(ext, ref_idx) > min_q:
+            key = (s, p, side, id(anchor[done][1]))
+            if memo is not None and key in memo:
+                f = memo[key][1]
+            elif frame_quality(ext, ref_idx) > min_q:
                 f = fit_joint(ext, mp, ms, ref=side)
+                if memo is not None:        # the anchor kept alive: its id stays its own
+                    memo[key] = (anchor[done][1], f)
             if f is None or not f.ok:
                 out[s] = fits[s]            # no usable completed frame: the world fit stays
                 continue
@@ -394,6 +401,7 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     # joint centres from the low-passed data too (all frames, untrimmed) when it is noisy
     fit_data = lowpass(traj, rate_hz) if noisy else traj
     fits: dict[tuple, JointFit] = {}
+    memo: dict = {}     # _completed_fits' fits, shared by its two calls
 
     def fit(p, s):
         if (p, s) not in fits:
@@ -408,20 +416,28 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     # the MST's choice among them is arbitrary; re-link each such group around its hub.
     junctions: list[Junction] = []
     if S > 2:
-        centres = {frozenset((int(a), int(b))): fit(int(a), int(b)).world for a, b in top.edges}
-        axes = {frozenset((int(a), int(b))): fit(int(a), int(b)).axis_world
-                for a, b in top.edges}
+        # the tree's joints as the final ones will be: world fits between two frameless
+        # segments re-fitted in completed frames (their centres can lie far off the point
+        # the segments share)
+        world = [frame_quality(fit_data, m) <= min_q for m in members]   # as fit_joint's
+        pre = {int(s): fit(int(top.parents[s]), int(s)) for s in range(S) if top.parents[s] >= 0}
+        pre.update(_completed_fits(fit_data, members, top.parents, pre, min_q, memo))
+        centres = {frozenset((int(top.parents[s]), s)): f.world for s, f in pre.items()}
+        axes = {frozenset((int(top.parents[s]), s)): f.axis_world for s, f in pre.items()}
         tree_cost = cost[tuple(top.edges.T)]
         edges = resolve_junctions(fit_data, members, top.edges, centres, cost,
                                   tol_m=JUNCTION_K * noise_m,
                                   max_cost=JUNCTION_COST * float(np.max(tree_cost)), axes=axes,
                                   recost=lambda a, b: joint_cost(smooth, members[a], members[b],
                                                                  min_quality=min_q),
-                                  is_hinge=lambda a, b: fit(a, b).hinge, record=junctions,
+                                  # (a world fit between two frameless segments is never
+                                  # a hinge: no fit needed)
+                                  is_hinge=lambda a, b: not (world[a] and world[b])
+                                  and fit(a, b).hinge, record=junctions,
                                   keep=sure, floor_m=floor)
         top = tree_from_edges(S, edges)
     final = {int(s): fit(int(top.parents[s]), int(s)) for s in range(S) if top.parents[s] >= 0}
-    final.update(_completed_fits(fit_data, members, top.parents, final, min_q))
+    final.update(_completed_fits(fit_data, members, top.parents, final, min_q, memo))
     # each junction's spread over its final joints (a centre the group was found around may
     # lie off the junction: skeleton.junctions' fixed-point test; a world fit is re-fitted
     # by _completed_fits)
