@@ -13,7 +13,9 @@ noise) as the held-out estimate; two rules came from their failures since (6b6d4
 fixed-point junction test (0e61224) was chosen on the failures of 1000-14000; 15000, 16000
 and 17000 were first run at stop 13, with the code before and after that test (45, 50, 49
 -> 47, 50, 49 of 50 with 1 mm noise), 18000 and 19000 on the final code of stop 13 (47 and
-50): the untouched ones now)
+50), 20000-23000 at stop 14; 24000-29000 were first run at stop 15 and its rules were looked
+at on their failures; 30000-32000 were first run at stop 15 before and after its junction
+change, 33000 and 34000 on its final code: the untouched ones now)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);

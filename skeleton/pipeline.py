@@ -6,7 +6,9 @@ variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every 
 (noise-normalised joint-fit residual) - both on 6 Hz low-passed data when the data is noisy,
 ``skeleton.topology`` (MST; pairs whose fit is a hinge within the noise are taken first),
 ``skeleton.junctions`` (segments meeting at one point re-linked around their hub, sure hinge
-pairs kept), root = tree centre, then a refined joint fit per tree edge. Segments without
+pairs kept; found on the tree's joints as the final fit makes them), root = tree centre,
+then a refined joint fit per tree edge (``_completed_fits``: a joint between two frameless
+segments fitted in one's frame completed by a neighbour's joint). Segments without
 a usable frame (two markers, or markers within the noise of a line) are fitted in world
 coordinates from a closed-form start, re-searched from many starts where the tree could
 take them; their cheap pairs are then re-tested with an anchor joint completing their frame
