@@ -194,7 +194,10 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
     dof = len(pts) - 3 - len(mk) + (1 if hinge else 0)
     cost = float(np.sqrt((fun(p) ** 2).sum() / dof)) if dof > 0 else np.inf
     res = float(np.sqrt(np.mean((fun(p) * wsq) ** 2)))
-    runaway = not hinge and bool(np.max(np.linalg.norm(pts - c, axis=1)) > MAX_JOINT_RADIUS_M)
+    def near(centre):       # within MAX_JOINT_RADIUS_M of every child marker point
+        return bool(np.max(np.linalg.norm(pts - centre, axis=1)) <= MAX_JOINT_RADIUS_M)
+
+    runaway = not hinge and not near(c)
     if hinge or runaway:
         # The centre is free (hinge) or nearly free (a sphere fit running off to fit noise
         # with a near-plane) along the weakest direction: it is refined on the plane
@@ -211,9 +214,9 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
                               np.concatenate([[0.0, 0.0], p2[3:]]),
                               jac=lambda q: jac(np.concatenate([c_foot + B @ q[:2], q[2:]]))
                               @ _plane_jac(B, len(mk)), method="lm", x_scale="jac").x
-            if np.max(np.linalg.norm(pts - (c_foot + B @ q[:2]), axis=1)) <= MAX_JOINT_RADIUS_M:
+            if near(c_foot + B @ q[:2]):
                 p2 = np.concatenate([c_foot + B @ q[:2], q[2:]])    # else: the foot point
-            if (hinge and np.max(np.linalg.norm(pts - p[:3], axis=1)) <= MAX_JOINT_RADIUS_M
+            if (hinge and near(p[:3])
                     and np.sqrt(np.mean(fun(p2) ** 2))
                     > PLANE_WORSE * max(np.sqrt(np.mean(fun(p) ** 2)), PLANE_RMS_MIN_M)):
                 # the plane holds no centre as good as the free one: the weakest direction

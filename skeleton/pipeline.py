@@ -163,17 +163,19 @@ def _anchor_points(data, members, cost, floor, frameless, min_quality: float = 0
         for a in np.flatnonzero(~has_frame):
             cand = [(frame_cost(a, p), int(p)) for p in np.flatnonzero(has_frame)
                     if min(cost[a, p], frame_cost(a, p)) <= ANCHOR * floor]
-            for c, p in sorted(cand)[:1]:       # the cheapest neighbour with a frame, or none
-                if (a, p) in too_noisy:
-                    break
-                ref = members[p] if p not in cols else np.append(members[p], cols[p])
-                f = fit_joint(ext, ref, members[a], ref=0)
-                seen = np.flatnonzero(~np.isnan(f.world).any(1))
-                if f.ok and seen.size and _point_noise_gain(
-                        ext[seen[0], ref], f.world[seen[0]]) <= ANCHOR_GAIN:
-                    new[int(a)] = (int(p), f.world)
-                else:
-                    too_noisy.add((a, p))
+            if not cand:
+                continue
+            _, p = min(cand)                # the cheapest neighbour with a frame, or none
+            if (a, p) in too_noisy:
+                continue
+            ref = members[p] if p not in cols else np.append(members[p], cols[p])
+            f = fit_joint(ext, ref, members[a], ref=0)
+            seen = np.flatnonzero(~np.isnan(f.world).any(1))
+            if f.ok and seen.size and _point_noise_gain(
+                    ext[seen[0], ref], f.world[seen[0]]) <= ANCHOR_GAIN:
+                new[int(a)] = (int(p), f.world)
+            else:
+                too_noisy.add((a, p))
         if not new:
             return anchors, ext, cols
         for a in sorted(new):
@@ -403,7 +405,7 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     # joint centres from the low-passed data too (all frames, untrimmed) when it is noisy
     fit_data = lowpass(traj, rate_hz) if noisy else traj
     fits: dict[tuple, JointFit] = {}
-    memo: dict = {}     # _completed_fits' fits, shared by its two calls
+    memo: dict = {}     # _completed_fits' fits, shared by tree_joints' two calls
 
     def fit(p, s):
         if (p, s) not in fits:
@@ -414,6 +416,13 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                    min_quality=min_q)
         return fits[p, s]
 
+    def tree_joints(parents) -> dict:
+        """child -> JointFit of every tree edge, world fits between two frameless segments
+        re-fitted in completed frames (``_completed_fits``)"""
+        out = {int(s): fit(int(parents[s]), int(s)) for s in range(S) if parents[s] >= 0}
+        out.update(_completed_fits(fit_data, members, parents, out, min_q, memo))
+        return out
+
     # Segments meeting at one point (sibling joints within the joint-centre uncertainty):
     # the MST's choice among them is arbitrary; re-link each such group around its hub.
     junctions: list[Junction] = []
@@ -422,8 +431,7 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
         # segments re-fitted in completed frames (their centres can lie far off the point
         # the segments share)
         world = [frame_quality(fit_data, m) <= min_q for m in members]   # as fit_joint's
-        pre = {int(s): fit(int(top.parents[s]), int(s)) for s in range(S) if top.parents[s] >= 0}
-        pre.update(_completed_fits(fit_data, members, top.parents, pre, min_q, memo))
+        pre = tree_joints(top.parents)
         centres = {frozenset((int(top.parents[s]), s)): f.world for s, f in pre.items()}
         axes = {frozenset((int(top.parents[s]), s)): f.axis_world for s, f in pre.items()}
         tree_cost = cost[tuple(top.edges.T)]
@@ -438,8 +446,7 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                   and fit(a, b).hinge, record=junctions,
                                   keep=sure, floor_m=floor)
         top = tree_from_edges(S, edges)
-    final = {int(s): fit(int(top.parents[s]), int(s)) for s in range(S) if top.parents[s] >= 0}
-    final.update(_completed_fits(fit_data, members, top.parents, final, min_q, memo))
+    final = tree_joints(top.parents)
     # each junction's spread over its final joints (a centre the group was found around may
     # lie off the junction: skeleton.junctions' fixed-point test; a world fit is re-fitted
     # by _completed_fits)
