@@ -55,6 +55,16 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    of two markers of one segment turned over 40 frames (the longest simulated gap) by at
    most 79 deg, 99 % below 56 deg, so a wrong assignment turns >= 68 deg more across 99 %
    of such gaps (the margin was set from this, before running the benchmark);
+4b. cross-segment exchange (``_repair_cross``): the linkage can also give two markers of
+   different segments each other's piece (both vanish at about the same time and each
+   continuation lies nearer the wrong one). Step 4 only pairs markers rigid to each
+   other. Here each marker's partners are the markers rigid (sd <= 3 times the measured sd)
+   to its longest fragment over >= 100 frames - its segment, whatever the rest of the
+   track holds; a track not rigid to all of them holds a foreign piece. With every marker
+   not rigid to it, each overlap-free exchange of a run of their fragments that leaves both
+   longest fragments in place is scored as in step 4, each track against its own partners,
+   and the best is made when it lowers the sum by ``swap_margin`` (1). Pairs where either
+   marker has no partners (a two-marker segment whose partner is hidden) are left alone;
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
@@ -120,6 +130,15 @@ rescue alone also left one marker as two ids in figures 23, 41 and 51 (changed a
 put the pieces above ``max_distance_m``); the loose pass of step 5 joins them, and alone
 (``continuity_m=0``) changes no figure (109 of 120). Merge time x1.07 of steps 1-3 alone
 in the same run (218 s for 120 figures; HEAD 196 s in a separate run).
+
+Step 4b (stop 16), ``bench_markersets.py`` in two trees of the same run: figures 0-119
+115 -> 117 of 120 (fixed 30 and 85: the exchange undoes the cross-segment merge and step
+5 joins the split; still failing 28, 93 (three markers of two segments), 119); figures
+120-199, where the step was designed (on 131, 186, 188, 195), 73 -> 78 of 80 (still
+failing 157: two markers of one segment exchanged at the start; 166: a marker of a
+two-marker segment split across a 50-frame gap); figures 200-279, held out, 74 -> 77 of
+80 (fixed 225, 227, 256; still failing 221, 242, 261). No figure lost; 262 -> 272 of 280.
+Merge time x1.21 of steps 1-3 alone (x1.07 before).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -197,8 +216,8 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4 and 5 of the module docstring (``swap_margin``: the
-    least gain in the rigidity cost for which fragments change marker).
+    ``repair_swaps`` then runs steps 4, 4b and 5 of the module docstring (``swap_margin``:
+    the least gain in the rigidity cost for which fragments change marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
     extrapolations across a gap for which a pair beyond ``max_distance_m`` still merges
     (module docstring, step 3).
@@ -320,11 +339,12 @@ def _best_by_turning(X, vis, ga0, gb0, alts, margin):
 
 
 def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3.0,
-                  rigid_share=0.8, max_rounds=3, turn_margin=np.pi / 3):
+                  rigid_share=0.8, max_rounds=3, turn_margin=np.pi / 3, cross_margin=None):
     """Step 4: exchange runs of fragments between two mutually rigid markers when that makes
     both more rigid with respect to their segment partners or, without segment partners,
     makes the direction between them turn less across the fragment changes (by at least
-    ``turn_margin`` rad; module docstring)."""
+    ``turn_margin`` rad; module docstring); then step 4b between markers of different
+    segments (``_repair_cross``, least gain ``cross_margin``, default ``margin``)."""
     vis = ~np.isnan(X[..., 0])
     P = _tracks(X, groups)
     M = len(groups)
@@ -402,6 +422,85 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                 changed = True
         if not changed:
             break
+    return _repair_cross(X, groups, min_frames, s0, margin if cross_margin is None
+                         else cross_margin)
+
+
+def _cross_alternatives(span: dict, ga, gb):
+    """Overlap-free exchanges of a run (in time order) of two markers' fragments:
+    (ga', gb') lists. ``span``: fragment -> (first, last) frame."""
+    frs = sorted(ga + gb, key=lambda f: span[f][0])
+    lab = [f in ga for f in frs]
+
+    def free(g):
+        return all(span[f][1] < span[h][0] for f, h in zip(g[:-1], g[1:]))
+
+    out = []
+    for i1 in range(len(frs)):
+        for i2 in range(i1 + 1, len(frs) + 1 - (i1 == 0)):
+            nl = [not x if i1 <= k < i2 else x for k, x in enumerate(lab)]
+            na = [f for f, x in zip(frs, nl) if x]
+            nb = [f for f, x in zip(frs, nl) if not x]
+            if na and nb and free(na) and free(nb):
+                out.append((na, nb))
+    return out
+
+
+def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, anchor_frames=100,
+                  rigid_pair=5.0, max_rounds=3):
+    """Step 4b: runs of fragments exchanged between two markers of different segments
+    (the linkage gave each a piece of the other). A marker's partners are the markers
+    rigid (distance sd <= ``rigid`` x the measured sd ``s0``) to its longest fragment
+    over >= ``anchor_frames`` frames; a marker whose track is not rigid to all of them
+    (sd > ``rigid`` x s0) holds a foreign piece. For it and every marker not rigid to it
+    (``rigid_pair``), each overlap-free exchange of a run of their fragments that keeps
+    both longest fragments in place is scored as step 4 scores a swap (sum over each
+    track's own partners of log(1 + sd / s0)); the best is made when it lowers the sum by
+    at least ``margin``. Pairs where either marker has no partners are left alone."""
+    vis = ~np.isnan(X[..., 0])
+    span = {f: (int(np.flatnonzero(vis[:, f])[0]), int(np.flatnonzero(vis[:, f])[-1]))
+            for g in groups for f in g}
+    for _ in range(max_rounds):
+        P = _tracks(X, groups)
+        M = len(groups)
+        anchor = [max(g, key=lambda f: int(vis[:, f].sum())) for g in groups]
+        part = []
+        for m in range(M):
+            f = anchor[m]
+            sd = _sd_to(P[vis[:, f]], X[vis[:, f], f], anchor_frames)
+            sd[m] = np.nan
+            part.append(np.flatnonzero(sd <= rigid * s0))
+        S = [_sd_to(P[:, part[m]], P[:, m], min_frames) for m in range(M)]
+
+        def cost(sd):
+            return float(np.nansum(np.log1p(sd / s0)))
+
+        bad = [m for m in range(M) if part[m].size and np.nanmax(
+            np.r_[S[m], -np.inf]) > rigid * s0]
+        best = None
+        for a in bad:
+            for b in range(M):
+                if b == a or not part[b].size:
+                    continue
+                if _sd_to(P[:, [b]], P[:, a], min_frames)[0] <= rigid_pair * s0:
+                    continue        # one segment's markers: step 4's
+                pa_, pb_ = part[a][part[a] != b], part[b][part[b] != a]
+                if not pa_.size or not pb_.size:
+                    continue
+                now = cost(_sd_to(P[:, pa_], P[:, a], min_frames)) + cost(
+                    _sd_to(P[:, pb_], P[:, b], min_frames))
+                for na, nb in _cross_alternatives(span, groups[a], groups[b]):
+                    if anchor[a] not in na or anchor[b] not in nb:
+                        continue
+                    ta, tb = _tracks(X, [na, nb]).transpose(1, 0, 2)
+                    gain = now - cost(_sd_to(P[:, pa_], ta, min_frames)) - cost(
+                        _sd_to(P[:, pb_], tb, min_frames))
+                    if gain >= margin and (best is None or gain > best[0]):
+                        best = (gain, a, b, na, nb)
+        if best is None:
+            break
+        _, a, b, na, nb = best
+        groups[a], groups[b] = na, nb
     return groups
 
 

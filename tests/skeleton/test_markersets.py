@@ -144,6 +144,26 @@ def test_swapped_markers_of_a_two_marker_segment_are_repaired(k):
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
+@pytest.mark.parametrize("k", [131, 188])
+def test_pieces_exchanged_across_segments_are_repaired(k):
+    """Benchmark figures 131 and 188: the linkage gives two markers of different segments
+    each other's end piece (both vanish at about the same time, and each continuation lies
+    closer to the wrong one). Step 4's repair only looks at two markers of one segment;
+    step 4b (each track against its longest fragment's segment partners) undoes it."""
+    from skeleton.markersets import _repair_swaps
+    fig, mo, X, owner = _bench_figure(k)
+    before = merge_fragments(X, repair_swaps=False)
+    mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
+    assert len(mixed) == 2                      # the failure this test guards against ...
+    a, b = ({int(owner[f]) for f in g} for g in mixed)
+    assert a == b and len({int(fig.marker_segment[m]) for m in a}) == 2
+    # ... which step 4 alone leaves as it is
+    kept = _repair_swaps(X, [list(g) for g in before.groups], MIN_FRAMES, 1.0,
+                         cross_margin=np.inf)
+    assert sum(len({int(owner[f]) for f in g}) > 1 for g in kept) == 2
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
 @pytest.mark.parametrize("k", [16, 79])
 def test_marker_split_beside_a_swap_merges_after_the_repair(k):
     """Benchmark figures 16 and 79: the repair undoes a swap but leaves one marker as two
