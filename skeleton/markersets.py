@@ -55,16 +55,19 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    of two markers of one segment turned over 40 frames (the longest simulated gap) by at
    most 79 deg, 99 % below 56 deg, so a wrong assignment turns >= 68 deg more across 99 %
    of such gaps (the margin was set from this, before running the benchmark);
-4b. cross-segment exchange (``_repair_cross``): the linkage can also give two markers of
-   different segments each other's piece (both vanish at about the same time and each
-   continuation lies nearer the wrong one). Step 4 only pairs markers rigid to each
-   other. Here each marker's partners are the markers rigid (sd <= 3 times the measured sd)
-   to its longest fragment over >= 100 frames - its segment, whatever the rest of the
-   track holds; a track not rigid to all of them holds a foreign piece. With every marker
-   not rigid to it, each overlap-free exchange of a run of their fragments that leaves both
-   longest fragments in place is scored as in step 4, each track against its own partners,
-   and the best is made when it lowers the sum by ``swap_margin`` (1). Pairs where either
-   marker has no partners (a two-marker segment whose partner is hidden) are left alone;
+4b. exchange by voting fragments (``_repair_cross``): the linkage can also give two markers
+   of different segments each other's piece (both vanish at about the same time and each
+   continuation lies nearer the wrong one), and step 4 misses swaps whose partners it
+   cannot pool. Every fragment seen in >= 100 frames votes with its own partners: the
+   markers rigid to it (distance sd <= 3 times the measured sd over its frames) - its
+   segment, whatever else its track holds. A track scores, summed over the partners of each
+   voter it holds, log(1 + sd / measured sd) of its distance to each. For a marker whose
+   track is not rigid to a partner of one of its voters, and every other marker, each
+   overlap-free exchange of a run of their fragments is scored (the pair's own tracks left
+   out of the partners, so each alternative sums the same terms) and the best is made when
+   it lowers the sum by ``swap_margin`` (1), one exchange per round. An exchange may not put
+   a fragment where no partner of the receiving track's voters is seen with it for
+   ``min_frames`` frames (else a piece could be dumped where nothing judges it);
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
@@ -131,14 +134,22 @@ put the pieces above ``max_distance_m``); the loose pass of step 5 joins them, a
 (``continuity_m=0``) changes no figure (109 of 120). Merge time x1.07 of steps 1-3 alone
 in the same run (218 s for 120 figures; HEAD 196 s in a separate run).
 
-Step 4b (stop 16), ``bench_markersets.py`` in two trees of the same run: figures 0-119
-115 -> 117 of 120 (fixed 30 and 85: the exchange undoes the cross-segment merge and step
-5 joins the split; still failing 28, 93 (three markers of two segments), 119); figures
-120-199, where the step was designed (on 131, 186, 188, 195), 73 -> 78 of 80 (still
-failing 157: two markers of one segment exchanged at the start; 166: a marker of a
-two-marker segment split across a 50-frame gap); figures 200-279, held out, 74 -> 77 of
-80 (fixed 225, 227, 256; still failing 221, 242, 261). No figure lost; 262 -> 272 of 280.
-Merge time x1.21 of steps 1-3 alone (x1.07 before).
+Step 4b (stop 16), ``bench_markersets.py`` (the failures of stop 15's code: 1-119: 28, 30,
+85, 93, 119; 120-199: 131, 135, 157, 166, 186, 188, 195; 200-279: 221, 225, 227, 242,
+256, 261 - 262 of 280 merged). A first form (each track against its longest fragment's
+partners only, both longest fragments kept in place) merged 272 of 280, no figure lost;
+it could not fix 242 (both longest fragments were one marker's) nor 261 and 119 (the two
+markers' tracks, mixed, looked rigid to each other and were left to step 4). The voting
+form, designed on 131, 186, 188, 195, 242, 261: 274 of 280 (still failing 28: a 14-frame
+end piece on a marker of its own segment; 93: three markers of two segments; 157: two
+markers of one segment exchanged at the start; 166: a marker of a two-marker segment split
+across a 50-frame gap; 186: the foreign piece sits in a track with no fragment of >= 100
+frames; 221). Voters from 50 frames: 275 of 280 (fixed 93 and 186, lost 256) at 1.38x the
+merge time of voters from 100 frames, which were kept. Without the check that a moved
+fragment is seen with a partner of the receiving track, figures 1 and 23 (merged before)
+lost a correct fragment to a track with no voter.
+Merge time x1.33 of steps 1-3 alone on figures 0-59 (x1.07 before; 1.36 before the
+partner columns of a pair were measured once per alternative, not once per voter).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -446,55 +457,71 @@ def _cross_alternatives(span: dict, ga, gb):
     return out
 
 
-def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, anchor_frames=100,
-                  rigid_pair=5.0, max_rounds=3):
-    """Step 4b: runs of fragments exchanged between two markers of different segments
-    (the linkage gave each a piece of the other). A marker's partners are the markers
-    rigid (distance sd <= ``rigid`` x the measured sd ``s0``) to its longest fragment
-    over >= ``anchor_frames`` frames; a marker whose track is not rigid to all of them
-    (sd > ``rigid`` x s0) holds a foreign piece. For it and every marker not rigid to it
-    (``rigid_pair``), each overlap-free exchange of a run of their fragments that keeps
-    both longest fragments in place is scored as step 4 scores a swap (sum over each
-    track's own partners of log(1 + sd / s0)); the best is made when it lowers the sum by
-    at least ``margin``. Pairs where either marker has no partners are left alone."""
+def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
+                  max_rounds=10):
+    """Step 4b (module docstring): runs of fragments exchanged between two markers, judged
+    by voting fragments. Every fragment seen in >= ``voter_frames`` frames votes with its
+    partners: the markers rigid to it (distance sd <= ``rigid`` x the measured sd ``s0``
+    over its frames). A track scores, summed over the partners of each voter it holds,
+    log(1 + sd / s0) of its distance to each. For a marker whose track is not rigid to a
+    partner of one of its voters, and every other marker, each overlap-free exchange of a
+    run of their fragments is scored (the pair's own tracks left out of the partners, so
+    every alternative sums the same terms); the best of a round is made when it lowers the
+    sum by at least ``margin`` (at most ``max_rounds`` rounds). No fragment is moved where
+    no partner of the receiving track's voters is seen with it for ``min_frames`` frames."""
     vis = ~np.isnan(X[..., 0])
     span = {f: (int(np.flatnonzero(vis[:, f])[0]), int(np.flatnonzero(vis[:, f])[-1]))
             for g in groups for f in g}
+
+    def cost(sd):
+        return float(np.nansum(np.log1p(sd / s0)))
+
     for _ in range(max_rounds):
         P = _tracks(X, groups)
         M = len(groups)
-        anchor = [max(g, key=lambda f: int(vis[:, f].sum())) for g in groups]
-        part = []
-        for m in range(M):
-            f = anchor[m]
-            sd = _sd_to(P[vis[:, f]], X[vis[:, f], f], anchor_frames)
-            sd[m] = np.nan
-            part.append(np.flatnonzero(sd <= rigid * s0))
-        S = [_sd_to(P[:, part[m]], P[:, m], min_frames) for m in range(M)]
+        part = {}
+        for m, g in enumerate(groups):
+            for f in g:
+                if vis[:, f].sum() >= voter_frames:
+                    sd = _sd_to(P[vis[:, f]], X[vis[:, f], f], voter_frames)
+                    sd[m] = np.nan
+                    part[f] = np.flatnonzero(sd <= rigid * s0)
 
-        def cost(sd):
-            return float(np.nansum(np.log1p(sd / s0)))
+        def score(g, t, q):
+            """the track t of fragments g against its voters' partners, among columns q"""
+            sd = np.full(M, np.nan)
+            sd[q] = _sd_to(P[:, q], t, min_frames)
+            return sum(cost(sd[part[f]]) for f in g if f in part)
 
-        bad = [m for m in range(M) if part[m].size and np.nanmax(
-            np.r_[S[m], -np.inf]) > rigid * s0]
+        def checked(g, old, excl):
+            """every fragment moved into g shares >= min_frames frames with a partner of
+            one of the voters g kept: nothing is put where no partner can judge it"""
+            q = np.setdiff1d(np.concatenate([part[f] for f in g if f in part and f in old]
+                                            + [[]]), excl).astype(int)
+            return all(q.size and (~np.isnan(P[vis[:, f]][:, q, 0])).sum(0).max()
+                       >= min_frames for f in set(g) - set(old))
+
+        bad = [m for m, g in enumerate(groups) if any(
+            part[f].size and np.nanmax(_sd_to(P[:, part[f]], P[:, m], min_frames)) > rigid * s0
+            for f in g if f in part)]
         best = None
         for a in bad:
             for b in range(M):
-                if b == a or not part[b].size:
+                if b == a:
                     continue
-                if _sd_to(P[:, [b]], P[:, a], min_frames)[0] <= rigid_pair * s0:
-                    continue        # one segment's markers: step 4's
-                pa_, pb_ = part[a][part[a] != b], part[b][part[b] != a]
-                if not pa_.size or not pb_.size:
+                alts = _cross_alternatives(span, groups[a], groups[b])
+                if not alts:
                     continue
-                now = cost(_sd_to(P[:, pa_], P[:, a], min_frames)) + cost(
-                    _sd_to(P[:, pb_], P[:, b], min_frames))
-                for na, nb in _cross_alternatives(span, groups[a], groups[b]):
-                    if anchor[a] not in na or anchor[b] not in nb:
+                ex = [a, b]
+                q = np.setdiff1d(np.concatenate(
+                    [part[f] for f in groups[a] + groups[b] if f in part] + [[]]),
+                    ex).astype(int)
+                now = score(groups[a], P[:, a], q) + score(groups[b], P[:, b], q)
+                for na, nb in alts:
+                    if not (checked(na, groups[a], ex) and checked(nb, groups[b], ex)):
                         continue
                     ta, tb = _tracks(X, [na, nb]).transpose(1, 0, 2)
-                    gain = now - cost(_sd_to(P[:, pa_], ta, min_frames)) - cost(
-                        _sd_to(P[:, pb_], tb, min_frames))
+                    gain = now - score(na, ta, q) - score(nb, tb, q)
                     if gain >= margin and (best is None or gain > best[0]):
                         best = (gain, a, b, na, nb)
         if best is None:

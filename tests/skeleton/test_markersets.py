@@ -139,7 +139,7 @@ def test_swapped_markers_of_a_two_marker_segment_are_repaired(k):
     assert a == b and len(seg) == 1 and (fig.marker_segment == seg.pop()).sum() == 2
     # ... which the partner rule alone leaves as it is
     kept = _repair_swaps(X, [list(g) for g in before.groups], MIN_FRAMES, 1.0,
-                         turn_margin=np.inf)
+                         turn_margin=np.inf, cross_margin=np.inf)
     assert sum(len({int(owner[f]) for f in g}) > 1 for g in kept) == 2
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
@@ -199,8 +199,8 @@ def test_planted_swap_of_a_two_marker_segment_is_repaired():
     truth = [[2 * m, 2 * m + 1] for m in range(fig.n_markers)]
     planted = [list(g) for g in truth]
     planted[m0][1], planted[m1][1] = 2 * m1 + 1, 2 * m0 + 1
-    assert _repair_swaps(X, [list(g) for g in planted], MIN_FRAMES, 1.0,
-                         turn_margin=np.inf) == planted          # the partner rule alone
+    assert _repair_swaps(X, [list(g) for g in planted], MIN_FRAMES, 1.0, turn_margin=np.inf,
+                         cross_margin=np.inf) == planted          # the partner rule alone
     repaired = _repair_swaps(X, planted, MIN_FRAMES, 1.0)
     assert sorted(sorted(int(f) for f in g) for g in repaired) == truth
 
