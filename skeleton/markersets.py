@@ -147,7 +147,12 @@ across a 50-frame gap; 186: the foreign piece sits in a track with no fragment o
 frames; 221). Voters from 50 frames: 275 of 280 (fixed 93 and 186, lost 256) at 1.38x the
 merge time of voters from 100 frames, which were kept. Without the check that a moved
 fragment is seen with a partner of the receiving track, figures 1 and 23 (merged before)
-lost a correct fragment to a track with no voter.
+lost a correct fragment to a track with no voter. Held out, figures 280-399 (repair
+variant only, same run): stop 15's code 111 of 120, this 114 (fixed 313, 368, 382, 390;
+lost 379: a correct 26-frame end piece moved to a marker of another segment; still
+failing 292, 339, 341, 371, 372). Tried and dropped: also requiring a moved fragment to be
+rigid, at the kept fragments' distance, to at least half the receiving partners it is
+seen with - figures 0-399 388 -> 387 of 400 (fixed 379, lost 135 and 195).
 Merge time x1.33 of steps 1-3 alone on figures 0-59 (x1.07 before; 1.36 before the
 partner columns of a pair were measured once per alternative, not once per voter).
 
