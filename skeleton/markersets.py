@@ -383,18 +383,8 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                 if not S[a, b] <= rigid_pair * s0 or len(groups[a]) + len(groups[b]) < 3:
                     continue
                 frs = sorted(groups[a] + groups[b], key=first.get)
-                # alternatives: the fragments of one run (in time order) change marker
-                lab = np.array([f in groups[a] for f in frs])
-                alts = []
-                for i1 in range(len(frs)):
-                    for i2 in range(i1 + 1, len(frs) + 1 - (i1 == 0)):
-                        nl = lab.copy()
-                        nl[i1:i2] = ~nl[i1:i2]
-                        ga = [f for f, x in zip(frs, nl) if x]
-                        gb = [f for f, x in zip(frs, nl) if not x]
-                        if (ga and gb and vis[:, ga].sum(1).max() <= 1
-                                and vis[:, gb].sum(1).max() <= 1):
-                            alts.append((ga, gb))
+                alts = _run_exchanges(frs, groups[a],
+                                      lambda g: vis[:, g].sum(1).max() <= 1)
                 if not alts:
                     continue
                 # segment partners: rigid to the fragments themselves (whatever their marker)
@@ -442,15 +432,12 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                          else cross_margin)
 
 
-def _cross_alternatives(span: dict, ga, gb):
-    """Overlap-free exchanges of a run (in time order) of two markers' fragments:
-    (ga', gb') lists. ``span``: fragment -> (first, last) frame."""
-    frs = sorted(ga + gb, key=lambda f: span[f][0])
+def _run_exchanges(frs, ga, free) -> list:
+    """The alternatives of steps 4 and 4b: the fragments ``frs`` of two markers (in time
+    order; those in ``ga`` are the first marker's) with the fragments of one run changing
+    marker, as (ga', gb') lists, each kept when ``free(g)`` (no two of its fragments seen
+    in one frame) holds for both."""
     lab = [f in ga for f in frs]
-
-    def free(g):
-        return all(span[f][1] < span[h][0] for f, h in zip(g[:-1], g[1:]))
-
     out = []
     for i1 in range(len(frs)):
         for i2 in range(i1 + 1, len(frs) + 1 - (i1 == 0)):
@@ -460,6 +447,14 @@ def _cross_alternatives(span: dict, ga, gb):
             if na and nb and free(na) and free(nb):
                 out.append((na, nb))
     return out
+
+
+def _cross_alternatives(span: dict, ga, gb):
+    """``_run_exchanges`` of two markers' fragments, overlap judged on their spans
+    (``span``: fragment -> (first, last) frame; cheaper than frame by frame)."""
+    return _run_exchanges(
+        sorted(ga + gb, key=lambda f: span[f][0]), ga,
+        lambda g: all(span[f][1] < span[h][0] for f, h in zip(g[:-1], g[1:])))
 
 
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
