@@ -48,9 +48,11 @@ class SkeletonRun:
 
 
 def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None,
-                 merge: bool = True, min_frames: int = 10, ik: bool = True) -> SkeletonRun:
+                 merge: bool = True, min_frames: int = 10, ik: bool = True,
+                 workers: int | None = None) -> SkeletonRun:
     """``markers`` is a ``reconstruct.marker_files.MarkerData`` (or anything with
-    ``positions`` (T, M, 3) m, ``labels`` and ``rate_hz``)."""
+    ``positions`` (T, M, 3) m, ``labels`` and ``rate_hz``). ``workers``: processes for the
+    pair costs (``skeleton.pipeline.solve_skeleton``; None: every CPU)."""
     say = progress or (lambda msg: None)
     X = np.asarray(markers.positions, np.float64)
     labels = tuple(markers.labels)
@@ -63,7 +65,8 @@ def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None
             f"({len(sets.dropped)} dropped as shorter than {min_frames} frames)")
     if X.shape[1] < 3:
         raise ValueError(f"{X.shape[1]} markers after merging, need at least 3")
-    res = solve_skeleton(X, markers.rate_hz, n_segments=n_segments, rng=rng, progress=say)
+    res = solve_skeleton(X, markers.rate_hz, n_segments=n_segments, rng=rng, progress=say,
+                         workers=workers)
     say("rigid skeleton")
     rigid = build_rigid_skeleton(X, res, marker_names=labels)
     say(f"fit back: {X.shape[0]} frames")

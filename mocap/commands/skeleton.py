@@ -7,6 +7,7 @@ JSON with ``--report``) and prints the summary and the per-marker deviation tabl
 """
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -24,7 +25,7 @@ def _run(args) -> int:
         f"{data.rate_hz:g} Hz")
     run = run_skeleton(data, n_segments=args.segments, rng=args.seed, progress=say,
                        merge=not args.no_merge, min_frames=args.min_frames,
-                       ik=not args.closed_form)
+                       ik=not args.closed_form, workers=args.workers)
     paths = write_outputs(run, args.output, args.report, units=args.units)
     print(summary_table(run.rigid, run.deviation, run.result.junctions))
     print()
@@ -49,4 +50,16 @@ def register(subparsers) -> None:
     p.add_argument("--closed-form", action="store_true",
                    help="keep the thesis' closed-form fit (skip the whole-skeleton IK)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=_positive_int, default=None,
+                   help="processes for the segment-pair joint costs (default: every CPU)")
     p.set_defaults(func=_run)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return n

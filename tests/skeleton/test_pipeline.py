@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from hw_sim.articulated import animate, random_tree
+from skeleton import pipeline
 from skeleton.pipeline import solve_skeleton
 from skeleton.rigid import kabsch
 from tests.skeleton._figures import segment_map, solver_joint_errors
@@ -105,3 +106,38 @@ def test_lowpass_keeps_slow_motion_and_gaps_and_cuts_noise():
     assert np.isnan(trimmed[:30, 0]).all() and not np.isnan(trimmed[30:-30, 0]).any()
     with pytest.raises(ValueError):
         lowpass(traj, 0.0)
+
+
+def test_pair_costs_in_processes_match_the_serial_loop(monkeypatch):
+    """The pair costs computed in forked worker processes (``workers``, a 12-segment figure
+    with 1 mm noise: 66 pairs, above PARALLEL_PAIRS) equal the serial loop's, and so does
+    what the solver builds on them: the same tree, the same joint centres. Up to the last
+    digits only: the serial loop alone gives one of these costs as 0.009344614768427 or
+    0.009344614769724568 depending on which modules were imported before it (memory
+    layout), so 1e-9 relative is the test's resolution, not a tolerance on the method."""
+    g = np.random.default_rng(21)
+    fig = random_tree(12, (2, 4), rng=g)
+    mo = animate(fig, 400, rng=g, rom_deg=60.0)
+    noisy = mo.markers + np.random.default_rng(5).normal(0, NOISE_M, mo.markers.shape)
+    pools = []
+
+    class Pool(pipeline.ProcessPoolExecutor):
+        def __init__(self, *a, **kw):
+            pools.append(a[0])
+            super().__init__(*a, **kw)
+
+    monkeypatch.setattr(pipeline, "ProcessPoolExecutor", Pool)
+    one = solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1)
+    assert pools == []
+    two = solve_skeleton(noisy, mo.rate_hz, rng=0, workers=2)
+    assert pools == [2]
+    assert one.n_segments == 12
+    np.testing.assert_allclose(one.cost, two.cost, rtol=1e-9, atol=0)
+    np.testing.assert_array_equal(one.parents, two.parents)
+    np.testing.assert_allclose(one.joint_centres, two.joint_centres, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("workers", [0, -1, 1.5, "2"])
+def test_bad_worker_count_is_refused(workers):
+    with pytest.raises(ValueError, match="workers"):
+        solve_skeleton(np.zeros((10, 4, 3)), 100.0, workers=workers)
