@@ -1,5 +1,5 @@
 """Marker sets (skeleton/markersets.py) on random simulated figures, with and without the
-swap repair (steps 4, 4b and 5), in the same run.
+swap repair (steps 4, 4b, 5 and 6), in the same run.
 
 Usage: python benchmarks/bench_markersets.py [first=0] [last=80] [n_frames=400]
 Figures k in [first, last), exactly as bench_skeleton_outputs.py's marker-set part: random

@@ -71,7 +71,13 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
-   loose pass (``loose_distance_m``) as before the repair.
+   loose pass (``loose_distance_m``) as before the repair;
+6. join by partners (``_join_by_partners``): while there are still more markers than the
+   bound, two markers that never share a frame, are rigid to the same partners and sit at
+   the same mean distance from each (within 3x the measured sd), and match no other marker
+   so, are one marker. A marker of a two-marker segment hidden for longer than the
+   continuity window has no pose to align on and no continuity to join it (figure 166: 50
+   frames).
 
 The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
 (1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on
@@ -155,6 +161,10 @@ rigid, at the kept fragments' distance, to at least half the receiving partners 
 seen with - figures 0-399 388 -> 387 of 400 (fixed 379, lost 135 and 195).
 Merge time x1.33 of steps 1-3 alone on figures 0-59 (x1.07 before; 1.36 before the
 partner columns of a pair were measured once per alternative, not once per voter).
+Step 6 (stop 17, designed on figure 166): figures 0-279 274 -> 275 of 280 (fixed 166),
+held out 280-399 114 -> 115 of 120 (fixed 292, a split marker too), none lost; still
+failing 28, 93, 157, 186, 221; 339, 341, 371, 372, 379. Merge time x1.35 of steps 1-3
+alone over figures 0-399 (``bench_markersets.py 0 200`` and ``200 400``, both x1.35).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -232,7 +242,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b and 5 of the module docstring (``swap_margin``:
+    ``repair_swaps`` then runs steps 4, 4b, 5 and 6 of the module docstring (``swap_margin``:
     the least gain in the rigidity cost for which fragments change marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
     extrapolations across a gap for which a pair beyond ``max_distance_m`` still merges
@@ -284,7 +294,55 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
                 loose = True
                 continue
             res = _regroup(X, res, nxt)
+        groups = _join_by_partners(X, [list(g) for g in res.groups], min_frames, first.n_min)
+        if len(groups) < res.n_markers:
+            groups = sorted((sorted(g, key=lambda f: _first_seen(X, f)) for g in groups),
+                            key=lambda g: _first_seen(X, g[0]))
+            res = MarkerSets(positions=_tracks(X, groups),
+                             groups=tuple(tuple(g) for g in groups), n_min=res.n_min,
+                             dropped=res.dropped, distance=res.distance)
     return res
+
+
+def _join_by_partners(X, groups, min_frames, n_min, rigid=3.0, match=3.0) -> list:
+    """Step 6 (module docstring): while there are more markers than ``n_min``, two markers
+    that never share a frame are joined when they are rigid (distance sd <= ``rigid`` x the
+    measured sd s0) to the same partners at the same distances (mean distance within
+    ``match`` x s0 for every partner both see for ``min_frames`` frames), and no other
+    marker matches either of them so. This joins a marker split across a gap too long for
+    motion continuity on a segment too small (two markers) to align a pose on."""
+    while len(groups) > n_min:
+        P = _tracks(X, groups)
+        M = len(groups)
+        vis = ~np.isnan(P[..., 0])
+        S = np.stack([_sd_to(P, P[:, m], min_frames) for m in range(M)])
+        np.fill_diagonal(S, np.nan)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            s0 = float(np.nanmedian(np.nanmin(S, 1)))
+            D = np.stack([np.nanmean(np.linalg.norm(P - P[:, m, None], axis=2), 0)
+                          for m in range(M)])
+        if not s0 > 0:
+            return groups
+        part = [set(np.flatnonzero(S[m] <= rigid * s0)) for m in range(M)]
+        overlap = vis.T.astype(int) @ vis.astype(int)
+        cand = []
+        for a in range(M):
+            for b in range(a + 1, M):
+                if overlap[a, b] or not part[a] & part[b]:
+                    continue
+                shared = part[a] & part[b]
+                if all(abs(D[a, q] - D[b, q]) <= match * s0 for q in shared):
+                    cand.append((a, b))
+        # only unambiguous pairs: neither marker matches any other
+        count = np.bincount(np.array(cand, int).ravel(), minlength=M) if cand else None
+        cand = [(a, b) for a, b in cand if count[a] == 1 and count[b] == 1]
+        if not cand:
+            return groups
+        a, b = cand[0]
+        groups[a] = groups[a] + groups[b]
+        del groups[b]
+    return groups
 
 
 def _regroup(X, res: MarkerSets, nxt: MarkerSets) -> MarkerSets:

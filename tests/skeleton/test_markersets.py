@@ -257,3 +257,19 @@ def test_motion_continuity_rescues_a_continuation_beyond_max_distance(k):
     assert mixed                                # the failure this test guards against ...
     assert any(len({int(fig.marker_segment[owner[f]]) for f in g}) > 1 for g in mixed)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+def test_marker_split_across_a_long_gap_joined_by_its_partners(monkeypatch):
+    """Benchmark figure 166: a marker of a two-marker segment vanishes for 50 frames, longer
+    than the motion-continuity window (45), and its segment (two markers) gives no pose to
+    align on, so every merge pass leaves it as two ids. Both ids are rigid to the segment's
+    other marker at the same distance and never share a frame: step 6
+    (``_join_by_partners``) joins them."""
+    from skeleton import markersets
+    fig, mo, X, owner = _bench_figure(166)
+    monkeypatch.setattr(markersets, "_join_by_partners", lambda X, groups, *a, **kw: groups)
+    split = merge_fragments(X)
+    assert split.n_markers == fig.n_markers + 1          # the failure this test guards against
+    assert all(len({int(owner[f]) for f in g}) == 1 for g in split.groups)
+    monkeypatch.undo()
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
