@@ -1,9 +1,10 @@
 """Marker trajectories -> skeleton: segments, topology, joint centres.
 
 ``solve_skeleton(trajectories (T, M, 3), rate_hz, n_segments=None, rng=None, progress=None,
-workers=None) -> SkeletonResult``. Stages: ``skeleton.segments`` (spectral clustering of distance
-variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every segment pair
-(noise-normalised joint-fit residual) - both on 6 Hz low-passed data when the data is noisy,
+workers=None) -> SkeletonResult``. Stages: ``skeleton.segments`` (spectral clustering of
+distance variance, K by eigengap unless given), ``skeleton.joints.joint_cost`` for every
+segment pair (noise-normalised joint-fit residual; the closed-form costs in one worker
+process per CPU) - both on 6 Hz low-passed data when the data is noisy,
 ``skeleton.topology`` (MST; pairs whose fit is a hinge within the noise are taken first),
 ``skeleton.junctions`` (segments meeting at one point re-linked around their hub, sure hinge
 pairs kept; found on the tree's joints as the final fit makes them), root = tree centre,
@@ -246,9 +247,8 @@ def _completed_fits(data, members, parents, fits: dict, min_q: float, memo: dict
     marker distances to place a centre each frame. Where both segments can be completed, the
     joint is fitted in both frames and the lower (noise-normalised) cost kept: an anchor
     near its two markers' line leaves the frame's roll to the noise. A completed segment
-    passes its new joint
-    on down a chain of frameless segments (used on the tree the junctions are found in, and on
-    the final one). ``fits``: child -> JointFit of the tree
+    passes its new joint on down a chain of frameless segments (used on the tree the
+    junctions are found in, and on the final one). ``fits``: child -> JointFit of the tree
     (parents[s], s). Returns the re-fitted ones (child -> JointFit, ``ref`` 0 or 1 naming
     the completed side; ``hinge`` only where that frame's first full frame is its markers')."""
     world = {s for s, f in fits.items() if f.ok and f.ref == -1}
@@ -277,15 +277,15 @@ def _completed_fits(data, members, parents, fits: dict, min_q: float, memo: dict
         done = (p, s)[side]
         ext = np.concatenate([data, anchor[done][1][:, None]], 1)
         col = np.array([data.shape[1]])
-        mp = np.concatenate([members[p], col]) if side == 0 else members[p]
-        ms = np.concatenate([members[s], col]) if side == 1 else members[s]
-        ref_idx = mp if side == 0 else ms
+        idx_p = np.concatenate([members[p], col]) if side == 0 else members[p]
+        idx_s = np.concatenate([members[s], col]) if side == 1 else members[s]
+        ref_idx = idx_p if side == 0 else idx_s
         f = None
         key = (s, p, side, id(anchor[done][1]))
         if memo is not None and key in memo:
             f = memo[key][1]
         elif frame_quality(ext, ref_idx) > min_q:
-            f = fit_joint(ext, mp, ms, ref=side)
+            f = fit_joint(ext, idx_p, idx_s, ref=side)
             if memo is not None:        # the anchor kept alive: its id stays its own
                 memo[key] = (anchor[done][1], f)
         return f, side, ext, ref_idx
