@@ -276,11 +276,8 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
             continue
         res = _regroup(X, res, nxt)
     if repair_swaps and res.n_markers >= 3:
-        groups = _repair_swaps(X, [list(g) for g in res.groups], min_frames, swap_margin)
-        groups = sorted((sorted(g, key=lambda f: _first_seen(X, f)) for g in groups),
-                        key=lambda g: _first_seen(X, g[0]))
-        res = MarkerSets(positions=_tracks(X, groups), groups=tuple(tuple(g) for g in groups),
-                         n_min=res.n_min, dropped=res.dropped, distance=res.distance)
+        res = _with_groups(X, res, _repair_swaps(X, [list(g) for g in res.groups],
+                                                 min_frames, swap_margin))
         loose = False
         for _ in range(max_passes + 1):
             # a marker left as two ids beside a swap (the swap made them overlap) can merge now
@@ -296,12 +293,17 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
             res = _regroup(X, res, nxt)
         groups = _join_by_partners(X, [list(g) for g in res.groups], min_frames, first.n_min)
         if len(groups) < res.n_markers:
-            groups = sorted((sorted(g, key=lambda f: _first_seen(X, f)) for g in groups),
-                            key=lambda g: _first_seen(X, g[0]))
-            res = MarkerSets(positions=_tracks(X, groups),
-                             groups=tuple(tuple(g) for g in groups), n_min=res.n_min,
-                             dropped=res.dropped, distance=res.distance)
+            res = _with_groups(X, res, groups)
     return res
+
+
+def _with_groups(X, res: MarkerSets, groups) -> MarkerSets:
+    """``res`` with new fragment groups (each in order of first sight, the groups too) and
+    their tracks."""
+    groups = sorted((sorted(g, key=lambda f: _first_seen(X, f)) for g in groups),
+                    key=lambda g: _first_seen(X, g[0]))
+    return MarkerSets(positions=_tracks(X, groups), groups=tuple(tuple(g) for g in groups),
+                      n_min=res.n_min, dropped=res.dropped, distance=res.distance)
 
 
 def _join_by_partners(X, groups, min_frames, n_min, rigid=3.0, match=3.0) -> list:
@@ -315,15 +317,13 @@ def _join_by_partners(X, groups, min_frames, n_min, rigid=3.0, match=3.0) -> lis
         P = _tracks(X, groups)
         M = len(groups)
         vis = ~np.isnan(P[..., 0])
-        S = np.stack([_sd_to(P, P[:, m], min_frames) for m in range(M)])
-        np.fill_diagonal(S, np.nan)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            s0 = float(np.nanmedian(np.nanmin(S, 1)))
-            D = np.stack([np.nanmean(np.linalg.norm(P - P[:, m, None], axis=2), 0)
-                          for m in range(M)])
+        S, s0 = _pair_sd(P, min_frames)
         if not s0 > 0:
             return groups
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            D = np.stack([np.nanmean(np.linalg.norm(P - P[:, m, None], axis=2), 0)
+                          for m in range(M)])
         part = [set(np.flatnonzero(S[m] <= rigid * s0)) for m in range(M)]
         overlap = vis.T.astype(int) @ vis.astype(int)
         cand = []
@@ -375,6 +375,16 @@ def _sd_to(P, q, min_frames) -> np.ndarray:
     return s
 
 
+def _pair_sd(P, min_frames) -> tuple[np.ndarray, float]:
+    """(M, M) distance sd between every two tracks of P (T, M, 3) (``_sd_to``; NaN on the
+    diagonal) and s0, the measured sd of a rigid pair: the median of each track's smallest."""
+    S = np.stack([_sd_to(P, P[:, m], min_frames) for m in range(P.shape[1])])
+    np.fill_diagonal(S, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return S, float(np.nanmedian(np.nanmin(S, 1)))
+
+
 def _turning(X, vis, ga, gb, ends=5) -> float:
     """Sum over the changes of fragment (in either marker, over their common frames) of the
     angle (rad) between the direction from marker a to marker b before and after: the mean
@@ -422,11 +432,7 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
     vis = ~np.isnan(X[..., 0])
     P = _tracks(X, groups)
     M = len(groups)
-    S = np.stack([_sd_to(P, P[:, m], min_frames) for m in range(M)])
-    np.fill_diagonal(S, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        s0 = float(np.nanmedian(np.nanmin(S, 1)))     # measured sd of a rigid pair
+    S, s0 = _pair_sd(P, min_frames)
     if not s0 > 0:
         return groups
 

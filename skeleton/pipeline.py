@@ -352,10 +352,14 @@ def _init_worker(data, members, min_q):
     threadpool_limits(limits=1, user_api="blas")
 
 
-def _one_pair_cost(ij):
-    data, members, min_q = _JOB
+def _pair_cost(data, members, min_q, ij):
+    """joint_cost's closed-form cost (``detail``) of the pair ij"""
     return joint_cost(data, members[ij[0]], members[ij[1]], multistart=False, detail=True,
                       min_quality=min_q)
+
+
+def _one_pair_cost(ij):
+    return _pair_cost(*_JOB, ij)
 
 
 def _pair_costs(data, members, pairs, min_q, workers: int | None) -> list:
@@ -380,8 +384,7 @@ def _pair_costs(data, members, pairs, min_q, workers: int | None) -> list:
                                    chunksize=max(1, len(pairs) // (4 * workers))))
         except (OSError, BrokenProcessPool):
             pass
-    return [joint_cost(data, members[i], members[j], multistart=False, detail=True,
-                       min_quality=min_q) for i, j in pairs]
+    return [_pair_cost(data, members, min_q, ij) for ij in pairs]
 
 
 def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, rng=None,
