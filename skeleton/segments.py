@@ -12,12 +12,20 @@ normally on the same segment). Nothing assumes a noise level in millimetres.
 2. K by the largest eigengap of the normalised Laplacian unless given; spectral clustering.
 3. Rigidity (automatic K only): a cluster holding a pair whose distance SD exceeds 4x the
    noise level is not one rigid body; it is split in two (complete linkage) until every
-   cluster is rigid. Then two clusters rigid to each other (every pair across them within
-   1.5x the noise level, 0.1 mm at least) are merged, closest first (stop 12: over seed sets
-   1000-12000 and six noise conditions, 3,600 segmentations, this changed one: noise-free
-   seed 12045, a 4-marker segment the spectral step had cut in two, now right).
+   cluster is rigid, single markers split off too. Then two clusters rigid to each other
+   (every pair across them within 1.5x the noise level, 0.1 mm at least) are merged, closest
+   first (stop 12: over seed sets 1000-12000 and six noise conditions, 3,600 segmentations,
+   this changed one: noise-free seed 12045, a 4-marker segment the spectral step had cut in
+   two, now right), and a single marker still alone joins the cluster it is most rigid with
+   (step 5). Until stop 18 a split that left one marker alone was not made: three 2-marker
+   segments spread by the spectral step over two 3-marker clusters stayed wrong (seed
+   48012, 1 mm: K = 19 of 20). Low-passed as the pipeline segments, seed sets 1000-3000,
+   7000-9000 and 46000-51000, noise-free, 1 mm, 1 mm + gaps, 2 mm and 3 mm (3,000
+   segmentations; /tmp script, the conditions of ``_count``): 12 -> 7 wrong (fixed 48012
+   at 1 and 2 mm, 46038 at 3 mm, 48032 and 7001 with gaps), none lost.
 4. Each marker moves to the cluster with the smallest mean squared distance SD to its members
    (fixes markers near a joint that the affinity attached to the neighbouring segment).
+5. A marker left alone joins the cluster it is most rigid with (automatic K only).
 
 Measured (figures as benchmarks/bench_skeleton.py: random_tree(5..20 segments, 2-4 markers),
 600 frames; right = same K and same partition as the truth; command:
@@ -145,7 +153,10 @@ def noise_sd(sd: np.ndarray) -> float:
 
 def _split_nonrigid(sd: np.ndarray, labels: np.ndarray, tau: float) -> np.ndarray:
     """Split (complete linkage, in two) every cluster holding a pair with sd > tau, repeatedly,
-    where both halves keep >= 2 markers."""
+    one-marker halves included: the spectral step can spread three 2-marker segments over two
+    clusters ({a1, b1, b2} and {a2, c1, c2}; seed 48012, 1 mm), and only the split-off single
+    markers, merged back rigid (``_merge_rigid``), rebuild a. A single marker rigid with nothing
+    (a mis-merged trajectory, an outlier) is no segment: ``_fold_singletons`` puts it back."""
     labels = labels.copy()
     changed = True
     while changed:
@@ -156,9 +167,6 @@ def _split_nonrigid(sd: np.ndarray, labels: np.ndarray, tau: float) -> np.ndarra
             if idx.size < 2 or sub.max() <= tau:
                 continue
             two = fcluster(linkage(squareform(sub, checks=False), "complete"), 2, "maxclust")
-            if min((two == 1).sum(), (two == 2).sum()) < 2:
-                continue    # one marker off its segment (a mis-merged trajectory, an outlier)
-                            # is no segment: no skeleton can line up a single marker
             labels[idx[two == 2]] = labels.max() + 1
             changed = True
     return labels

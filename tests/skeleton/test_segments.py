@@ -92,6 +92,20 @@ def test_pipeline_segments_low_passed_data(seed):
     assert len(pairs) == fig.n_segments
 
 
+@pytest.mark.parametrize("noise_m", [NOISE_M, 2e-3])
+def test_two_marker_segments_spread_over_two_clusters_are_rebuilt(noise_m):
+    """Seed 48012 (low-passed, as the pipeline segments): the spectral step puts one marker
+    of a 2-marker segment with each of two other 2-marker segments ({a1, b1, b2},
+    {a2, c1, c2}, K = 19 of 20). The rigidity split must split the single markers off
+    (each 3-marker cluster is not rigid), and the rigid merge joins a1 and a2 again."""
+    from skeleton.pipeline import lowpass
+    fig, mo = _figure(48012)
+    tr = lowpass(_noisy(mo.markers, 48012, noise_m), mo.rate_hz, trim=True)
+    seg = segment_markers(tr, None, rng=0)
+    assert seg.eigengap_k == fig.n_segments - 1          # the premise: K one short
+    assert _same_partition(fig, seg), (seg.n_segments, fig.n_segments)
+
+
 def test_noise_free_segment_cut_by_the_spectral_step_is_merged_back():
     """Seed 12045, noise-free: the spectral step (degenerate: every within-segment SD is 0)
     cut 4-marker segment 5 into 2 + 2; the rigidity merge joins the halves (every SD
