@@ -321,6 +321,11 @@ WORLD_ITERS = 100
 QUICK_ITERS = 30         # the closed-form start alone (noise-free: 1-2 iterations)
 INIT_FRAMES = 60         # frames for the closed-form 2+2 start
 MAX_JOINT_MARKER_M = 1.0   # a joint farther than this from a marker of its segments: rejected
+JOINT_REACH_M = 0.5        # ... or farther than this from every marker of one of them: a joint
+                           # lies near its segments (hw_sim's random trees, 23,322 joints of
+                           # seeds 1000-2999: nearest child marker <= 409 mm, nearest parent
+                           # marker <= 327 mm; a 2+2 world fit found no true pair of figures
+                           # 1000-1099 farther, and 198 of 887 false pairs: /tmp script)
 LM_RTOL = 1e-7           # stop: relative decrease of the sum of squares
 LM_ATOL_M = 1e-10        # stop: rms residual
 
@@ -469,9 +474,12 @@ def _four_marker_init(X: np.ndarray, extra_starts=()) -> np.ndarray | None:
 
 
 def _plausible(r: np.ndarray) -> np.ndarray:
-    """(B, N) marker-joint distances -> (B,) whether a fit is a joint, not a far-away point
-    (noisy 2+2 data also fits a point metres away at nearly constant distances)."""
-    return (r > 0).all(1) & (r < MAX_JOINT_MARKER_M).all(1)
+    """(B, 4) marker-joint distances of two 2-marker segments -> (B,) whether a fit is a
+    joint, not a far-away point (noisy 2+2 data also fits a point metres away at nearly
+    constant distances): every marker within ``MAX_JOINT_MARKER_M``, and the nearest
+    marker of each segment within ``JOINT_REACH_M``."""
+    return ((r > 0).all(1) & (r < MAX_JOINT_MARKER_M).all(1)
+            & (r[:, :2].min(1) < JOINT_REACH_M) & (r[:, 2:].min(1) < JOINT_REACH_M))
 
 
 CIRCLE_AXIAL = (-0.5, 0.5, 1.5)      # along the 2-marker line, marker 0 -> 1 = 1
@@ -570,7 +578,8 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True,
     - Two 2-marker segments: the thesis' world-frame cost (one centre per frame at constant
       distances from all 4 markers), ``sqrt(SSR / (F N - 3 F - N))``, started from the
       closed form of ``_four_marker_init``; ``multistart`` adds starts along both marker
-      lines (screened on a few frames), for data where the closed form is too noisy.
+      lines (screened on a few frames), for data where the closed form is too noisy. inf
+      when the fit is no joint near the markers (``_plausible``).
 
     ``COST_FRAMES`` frames are used, evenly spaced over those seeing both segments.
     ``detail``: returns ``PairCost`` (cost, hinge: True when every reference frame's fit is
@@ -594,5 +603,7 @@ def joint_cost(traj: np.ndarray, markers_a, markers_b, multistart: bool = True,
         cost = float(np.mean([f.cost_m for f in fits]))
         return PairCost(cost, all(f.hinge for f in fits), None) if detail else cost
     _, r, ssr = _world_solve(X, a.size, multistart)
-    cost = float(np.sqrt(ssr / dof))
+    # no fit near the markers (``_plausible``): no joint (seed 56046, 1 mm: a false pair fitted
+    # a point 548-664 mm from all four markers at the true joint's cost, and the tree took it)
+    cost = float(np.sqrt(ssr / dof)) if _plausible(r[None])[0] else np.inf
     return PairCost(cost, False, r) if detail else cost

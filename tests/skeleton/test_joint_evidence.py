@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from hw_sim.articulated import MIN_MARKER_SPACING_M, animate, random_tree
-from skeleton.joints import HINGE_RATIO, _inv3_sym, fit_joint, frame_quality, joint_cost
+from skeleton.joints import (HINGE_RATIO, JOINT_REACH_M, _inv3_sym, fit_joint, frame_quality,
+                             joint_cost)
 from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, POOR_FRAME, _Completed,
                                _path_max, _tree_floor, lowpass, solve_skeleton)
 from skeleton.segments import distance_sd
@@ -152,15 +153,20 @@ def test_cramped_three_marker_frame_is_fitted_in_world_coordinates():
 def test_false_two_marker_pair_raised_by_anchor_joints():
     """Seed 4038: segments 3 and 7 (two markers each) are not neighbours (3 hangs from 1, 7
     from 0), yet a point at constant distances from their four markers fits within the noise
-    (1.1x the floor), and the tree took it. With segment 3's frame completed by its anchor
-    joint (with its parent 1, a point fixed in 3), no fixed point fits: the pair is raised
-    above FALSIFY x the floor, while no true pair of the figure is raised."""
+    (1.1x the floor), and the tree took it. That point lies 673-793 mm from all four markers,
+    so the reach rule (``JOINT_REACH_M``, since stop 18) rejects the pair outright; the
+    completed frame rejects it on its own too: with segment 3's frame completed by its
+    anchor joint (with its parent 1, a point fixed in 3), no fixed point fits, and the pair,
+    priced at the floor as the world fit had it, is raised above FALSIFY x the floor, while
+    no true pair of the figure is raised."""
     fig, mo, m, noisy, smooth, min_q, truth = _noisy(4038)
     assert m[3].size == m[7].size == 2 and frozenset((3, 7)) not in truth
+    pc = joint_cost(smooth, m[3], m[7], detail=True, min_quality=min_q)
+    assert pc.cost == np.inf and pc.radii.min() > JOINT_REACH_M
     before, cost, floor, completed = _completed_costs(smooth, m, truth, (3, 7), min_q)
-    assert before[3, 7] < 1.5 * floor                   # the world-frame cost alone: a joint
     assert completed.anchors[3][0] == 1
-    assert completed.raised >= 1 and cost[3, 7] > FALSIFY * floor
+    cost[3, 7] = cost[7, 3] = floor           # the reach-free world fit's price
+    assert completed.raise_false(cost, 3, 7, floor) and cost[3, 7] > FALSIFY * floor
     for e in truth:
         i, j = tuple(e)
         assert cost[i, j] == before[i, j], (i, j)
@@ -297,3 +303,23 @@ def test_hinge_centre_stays_free_where_no_plane_fits():
     err = solver_joint_errors(fig, mo, res, segment_map(fig, res.labels))
     assert err[1] < 0.005, np.round(err * 1e3, 1)     # the joint of true segment 2
     assert err[0] < 0.020, np.round(err * 1e3, 1)     # the hinge itself: 11.4 mm (15.9)
+
+
+def test_two_marker_pair_without_a_joint_near_its_markers_is_no_joint():
+    """Seed 56046 (1 mm noise): segments 0 and 7 (two markers each) are not neighbours (7
+    hangs from 3, 3 from 1, 1 from 0), yet a point at nearly constant distances from their
+    four markers fits at the true joint 3-7's cost - 548-664 mm from every one of them.
+    A joint lies within ``JOINT_REACH_M`` of a marker of each of its segments (hw_sim's
+    random trees: the nearest marker is at most 409 mm from the joint over 23,322 joints),
+    so that fit is no joint: the pair costs inf, the true pairs keep their finite costs, and
+    the tree is the true one (it took 0-7 before)."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(56046)
+    assert [int(fig.parents[s]) for s in (7, 3, 1)] == [3, 1, 0]
+    assert all(m[s].size == 2 for s in (0, 3, 7)) and frozenset((0, 7)) not in truth
+    pc = joint_cost(smooth, m[0], m[7], detail=True, min_quality=min_q)
+    assert pc.radii[:2].min() > JOINT_REACH_M and pc.radii[2:].min() > JOINT_REACH_M
+    assert pc.cost == np.inf
+    true_pc = joint_cost(smooth, m[3], m[7], detail=True, min_quality=min_q)
+    assert np.isfinite(true_pc.cost) and true_pc.cost < 1.5 * NOISE_M
+    assert max(true_pc.radii[:2].min(), true_pc.radii[2:].min()) < JOINT_REACH_M
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
