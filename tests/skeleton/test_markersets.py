@@ -273,3 +273,26 @@ def test_marker_split_across_a_long_gap_joined_by_its_partners(monkeypatch):
     assert all(len({int(owner[f]) for f in g}) == 1 for g in split.groups)
     monkeypatch.undo()
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+@pytest.mark.parametrize("k", [28, 372])
+def test_short_end_piece_on_a_segment_partner_is_moved_back(k):
+    """Benchmark figures 28 and 372: the linkage ends a marker with the last 14 / 21 frames
+    of another marker of its segment. Over the whole track that piece barely moves the sd
+    of the distance to the segment's other markers (step 4's rigidity rule sees no gain);
+    the jump of the mean distance at the piece does: step 4's jump rule moves it back (and,
+    in figure 372, step 4b no longer moves it again on partners rigid only over its
+    voters' frames)."""
+    from skeleton.markersets import _repair_swaps
+    fig, mo, X, owner = _bench_figure(k)
+    before = merge_fragments(X, repair_swaps=False)
+    mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
+    assert len(mixed) == 1                      # the failure this test guards against ...
+    (m, n), piece = sorted({int(owner[f]) for f in mixed[0]}), mixed[0][-1]
+    assert fig.marker_segment[m] == fig.marker_segment[n]
+    assert (~np.isnan(X[:, piece, 0])).sum() < 25 and X.shape[0] - 1 in np.flatnonzero(
+        ~np.isnan(X[:, piece, 0]))              # ... an end piece of a few frames ...
+    kept = _repair_swaps(X, [list(g) for g in before.groups], MIN_FRAMES, 1.0,
+                         jump_margin=np.inf)    # ... which the repair without jumps keeps
+    assert any(len({int(owner[f]) for f in g}) > 1 for g in kept)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
