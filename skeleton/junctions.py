@@ -52,7 +52,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Junction", "joint_spread", "junction_groups", "relative_spread",
+__all__ = ["Junction", "joint_gap", "joint_spread", "junction_groups", "relative_spread",
            "resolve_junctions"]
 
 SPREAD_FRAMES = 200
@@ -81,7 +81,7 @@ def _root(parent, k):
     return k
 
 
-def _gap(ca, aa, cb, ab) -> np.ndarray:
+def joint_gap(ca, aa, cb, ab) -> np.ndarray:
     """(T,) distance between two joints: centres (T, 3); a hinge's (axis (T, 3), else None)
     centre is anywhere on its axis, so the distance is taken to that line."""
     d = cb - ca
@@ -94,10 +94,10 @@ def _gap(ca, aa, cb, ab) -> np.ndarray:
 
 def joint_spread(edges, centres: dict, axes: dict | None = None) -> float:
     """The largest median distance (m) between the joints of two ``edges`` (frozensets) that
-    share a segment (``_gap``: to a hinge's axis line); NaN without such a pair."""
+    share a segment (``joint_gap``: to a hinge's axis line); NaN without such a pair."""
     axes = axes or {}
     edges = list(edges)
-    gaps = [np.nanmedian(_gap(centres[e], axes.get(e), centres[f], axes.get(f)))
+    gaps = [np.nanmedian(joint_gap(centres[e], axes.get(e), centres[f], axes.get(f)))
             for i, e in enumerate(edges) for f in edges[i + 1:]
             if e & f and np.isfinite(centres[e]).any() and np.isfinite(centres[f]).any()]
     gaps = [g for g in gaps if np.isfinite(g)]
@@ -139,7 +139,7 @@ def junction_groups(edges, centres: dict, tol_m: float, axes: dict | None = None
             if not set(e) & set(f):
                 continue
             fe, ff = frozenset(e), frozenset(f)
-            d = _gap(centres[fe], axes.get(fe), centres[ff], axes.get(ff))
+            d = joint_gap(centres[fe], axes.get(fe), centres[ff], axes.get(ff))
             near = bool(np.isfinite(d).any() and np.nanmedian(d) < tol_m)
             if not near and traj is not None and floor_m > 0:
                 near = any(axes.get(g) is None and _sphere_sd(

@@ -13,7 +13,9 @@ segments fitted in one's frame completed by a neighbour's joint). Segments witho
 a usable frame (two markers, or markers within the noise of a line) are fitted in world
 coordinates from a closed-form start, re-searched from many starts where the tree could
 take them; their cheap pairs are then re-tested with an anchor joint completing their frame
-(``_Completed``; a completed segment lends its frame on down a chain of 2-marker segments).
+(``_Completed``; a completed segment lends its frame on down a chain of 2-marker segments),
+or - without anchors - raised where a framed segment fits both at distinct points
+(``_raise_split_siblings``).
 Conventions: docs/conventions.md [arrays], [units].
 """
 from __future__ import annotations
@@ -31,7 +33,7 @@ from threadpoolctl import threadpool_limits
 
 from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_cost
 from skeleton.segments import distance_sd, noise_sd, segment_markers
-from skeleton.junctions import Junction, joint_spread, resolve_junctions
+from skeleton.junctions import Junction, joint_gap, joint_spread, resolve_junctions
 from skeleton.topology import skeleton_tree, tree_from_edges
 
 __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
@@ -235,6 +237,48 @@ class _Completed:
             cost[i, j] = cost[j, i] = c2
             self.raised += 1
         return True
+
+
+def _raise_split_siblings(data, members, cost, floor, frameless, upper, tol_m, log=None):
+    """Cheap pairs (below ``upper``) of two frameless segments a, b with a framed segment p
+    that fits a joint within the noise with each (cost <= ANCHOR x ``floor``), at centres
+    that lie apart in p (median distance > ``tol_m``; to a hinge's axis line): their cost is
+    raised to FALSIFY x the floor (x CLEAN_NOISE_M at least; in place, never lowered). Of
+    the three pairs of such a triangle a tree takes two, and all three are joints only where
+    the two joints on p coincide (a junction). p's fits are framed (a centre fixed in p,
+    constant distances to the other's markers); the world fit of a, b only has four marker
+    distances per frame to place a point, which false siblings can meet (seed 63031, 1 mm:
+    siblings 41 mm apart under 3-marker segment 1 at 1.00x the floor, their true joints on
+    1 at 0.97x and 1.01x; the tree took the false one). This is the anchor test
+    (``_Completed``) where no anchor exists: p's frame carries both joints too noisily
+    (gains 3.5 and 2.7). ``log``, when given, gets (a, b, p, median distance m, cost /
+    floor) per raised pair. Returns the raised pairs (frozensets)."""
+    fits: dict = {}
+
+    def fit(p, a):
+        if (p, a) not in fits:
+            fits[p, a] = fit_joint(data, members[p], members[a], ref=0)
+        return fits[p, a]
+
+    out: set = set()
+    for a, b in zip(*np.triu_indices(len(members), 1)):
+        if not (frameless[a] and frameless[b] and cost[a, b] < upper):
+            continue
+        for p in np.flatnonzero(~np.asarray(frameless, bool)):
+            if max(cost[p, a], cost[p, b]) > ANCHOR * floor:
+                continue
+            fa, fb = fit(p, a), fit(p, b)
+            if not (fa.ok and fb.ok):
+                continue
+            gap = joint_gap(fa.world, fa.axis_world, fb.world, fb.axis_world)
+            if np.isfinite(gap).any() and np.nanmedian(gap) > tol_m:
+                if log is not None:
+                    log.append((int(a), int(b), int(p), float(np.nanmedian(gap)),
+                                float(cost[a, b] / floor)))
+                cost[a, b] = cost[b, a] = max(cost[a, b], FALSIFY * max(floor, CLEAN_NOISE_M))
+                out.add(frozenset((int(a), int(b))))
+                break
+    return out
 
 
 def _completed_fits(data, members, parents, fits: dict, min_q: float, memo: dict | None = None
@@ -464,6 +508,9 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     for i, j in zip(*np.triu_indices(S, 1)):
         if cost[i, j] < upper and completed.applies(i, j):
             completed.raise_false(cost, i, j, floor)
+    # pairs of frameless segments that a framed segment fits apart (no anchor needed)
+    _raise_split_siblings(smooth, members, cost, floor, frameless, upper,
+                          JUNCTION_K * max(noise_m, CLEAN_NOISE_M))
     raised = completed.raised
     say(f"joint costs: {S * (S - 1) // 2} pairs ({raised} raised by completed frames)")
     # A pair whose relative motion is a rotation about one axis, fitting within the noise,

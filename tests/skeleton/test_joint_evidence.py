@@ -10,8 +10,9 @@ import pytest
 from hw_sim.articulated import MIN_MARKER_SPACING_M, animate, random_tree
 from skeleton.joints import (HINGE_RATIO, JOINT_REACH_M, _inv3_sym, fit_joint, frame_quality,
                              joint_cost)
-from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, POOR_FRAME, _Completed,
-                               _path_max, _tree_floor, lowpass, solve_skeleton)
+from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, JUNCTION_K, POOR_FRAME,
+                               _Completed, _path_max, _raise_split_siblings, _tree_floor,
+                               lowpass, solve_skeleton)
 from skeleton.segments import distance_sd
 from skeleton.topology import skeleton_tree
 from tests.skeleton._figures import (exact_topology, largest_case, segment_map,
@@ -213,6 +214,29 @@ def test_chained_anchors_raise_a_false_pair_below_a_two_marker_parent():
     assert before[4, 7] < 1.2 * floor                   # the world-frame cost alone: a joint
     assert {s: completed.anchors[s][0] for s in (2, 3, 4, 7)} == {2: 8, 3: 2, 4: 3, 7: 3}
     assert cost[4, 7] > FALSIFY * floor
+    for e in truth:
+        i, j = tuple(e)
+        assert cost[i, j] == before[i, j], (i, j)
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
+def test_false_siblings_apart_on_a_framed_parent_are_raised():
+    """Seed 63031 (1 mm noise): 2-marker segments 3 and 6 hang from 3-marker segment 1, their
+    joints 41 mm apart. The world fit of 3-6 (four marker distances per frame) costs the
+    floor like their true joints with 1, and 1's frame carries those joints too noisily
+    for an anchor (gains 3.5 and 2.7), so the tree took 3-6. 1 fits each at a centre of its
+    own, ~40 mm apart: no junction, so 3-6 is raised, and no true pair changes."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(63031)
+    assert fig.parents[3] == fig.parents[6] == 1 and m[3].size == m[6].size == 2
+    before, cost, floor, _ = _completed_costs(smooth, m, truth, (3, 6), min_q)
+    assert before[3, 6] < FALSIFY_BELOW * floor
+    frameless = np.array([frame_quality(smooth, s) <= min_q for s in m])
+    log = []
+    noise = np.sqrt(min_q) / POOR_FRAME
+    raised = _raise_split_siblings(smooth, m, cost, floor, frameless, FALSIFY_BELOW * floor,
+                                   JUNCTION_K * noise, log)
+    assert raised == {frozenset((3, 6))} and log[0][:3] == (3, 6, 1) and log[0][3] > 0.03
+    assert cost[3, 6] >= FALSIFY * floor
     for e in truth:
         i, j = tuple(e)
         assert cost[i, j] == before[i, j], (i, j)
