@@ -81,6 +81,16 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    that raises step 4's jump cost of the two markers by ``jump_margin`` times the measured
    sd squared (a voter's partners may be rigid over its frames only: in figure 372 they
    put back a piece that step 4's jumps had moved);
+4c. misfit pieces (``_move_misfits``): a piece too short to move a track's sd (figure 617:
+   the first 11 frames of a marker whose next piece starts 26 frames later, given to a
+   marker of another segment 4.6-9.4 mm from it over those frames) is judged by the jumps
+   instead: a fragment that sits off its marker's other fragments on every judge
+   (``_misfit`` above ``jump_margin`` times the measured sd squared on each track rigid to
+   it and to them for >= 100 frames; one judge at the same distance is support enough:
+   in figure 31 a marker of another segment rigid to both fragments of one marker sat
+   9.7 mm further from the first) moves to the one marker, sharing no frame with it, that
+   it fits (within that bound on every judge), one move per round, the largest misfit
+   first;
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
@@ -262,7 +272,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b, 5 and 6 of the module docstring (``swap_margin``:
+    ``repair_swaps`` then runs steps 4, 4b, 4c, 5 and 6 of the module docstring (``swap_margin``:
     the least gain in the rigidity cost for which fragments change marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
     extrapolations across a gap for which a pair beyond ``max_distance_m`` still merges
@@ -495,7 +505,8 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
     ``jump_margin`` times the measured sd squared) or, without segment partners, makes the
     direction between them turn less across the fragment changes (by at least
     ``turn_margin`` rad; module docstring); then step 4b between markers of different
-    segments (``_repair_cross``, least gain ``cross_margin``, default ``margin``)."""
+    segments (``_repair_cross``, least gain ``cross_margin``, default ``margin``) and step
+    4c (``_move_misfits``)."""
     vis = ~np.isnan(X[..., 0])
     P = _tracks(X, groups)
     M = len(groups)
@@ -567,8 +578,9 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                 changed = True
         if not changed:
             break
-    return _repair_cross(X, groups, min_frames, s0, margin if cross_margin is None
-                         else cross_margin, jump_margin=jump_margin)
+    groups = _repair_cross(X, groups, min_frames, s0, margin if cross_margin is None
+                           else cross_margin, jump_margin=jump_margin)
+    return _move_misfits(X, groups, min_frames, s0, jump_margin=jump_margin)
 
 
 def _run_exchanges(frs, ga, free) -> list:
@@ -694,6 +706,86 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
             break
         _, a, b, na, nb = best
         groups[a], groups[b] = na, nb
+    return groups
+
+
+def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames) -> np.ndarray:
+    """How far fragment ``f`` sits from where the fragments ``kept`` (one marker) are.
+    Judges: the tracks of P (T, M, 3) (not in ``excl``) rigid to f and to each kept
+    fragment they are seen with (``sd_of(h)``: (M,) distance sd of fragment h to every
+    track, NaN where seen together for too few frames; rigid: <= ``rigid_sd``), seen with
+    kept + [f] for >= ``partner_frames`` frames (rigid that long: a segment partner, as a
+    voter's in step 4b; a track across a joint can be rigid to each of two short
+    fragments yet drift between them, figure 87) and at one constant distance from the
+    kept fragments (``_jump_ss`` <= ``bound``). Returns the ``_jump_ss`` (m^2)
+    of kept + [f] on each judge (a piece of another marker sits at other distances; empty
+    when no track judges)."""
+    if not kept:
+        return np.zeros(0)
+    ok = sd_of(f) <= rigid_sd
+    seen = np.zeros(P.shape[1], bool)
+    for h in kept:
+        ok &= np.isnan(sd_of(h)) | (sd_of(h) <= rigid_sd)
+        seen |= ~np.isnan(sd_of(h))
+    ok &= seen
+    ok[excl] = False
+    js = np.flatnonzero(ok)
+    if js.size == 0:
+        return np.zeros(0)
+    frames = (vis[:, kept + [f]].any(1)[:, None] & ~np.isnan(P[:, js, 0])).sum(0)
+    ss = _jump_ss(X, vis, kept + [f], P[:, js])
+    use = (ss(kept) <= bound) & (frames >= partner_frames)
+    return ss(kept + [f])[use]
+
+
+def _fits(costs, bound) -> bool:
+    """``_misfit``'s costs say the fragment fits: some judge, and every one within
+    ``bound``."""
+    return bool(costs.size and costs.max() <= bound)
+
+
+def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_frames=100,
+                  max_rounds=10):
+    """Step 4c (module docstring): a fragment that fits the other fragments of its marker
+    on no judge (``_misfit`` above ``jump_margin`` x s0 squared on every track rigid to it
+    and to them: it sits at other distances from all their segment partners; one judge at
+    the same distance is support enough - in figure 31 a marker of another segment, rigid
+    to both fragments, sat 9.7 mm further from one) moves to the one marker it fits
+    (``_fits``) without sharing a frame with it; one move per round (the largest misfit
+    first), at most ``max_rounds``."""
+    vis = ~np.isnan(X[..., 0])
+    bound = jump_margin * s0 ** 2
+    for _ in range(max_rounds):
+        P = _tracks(X, groups)
+        M = len(groups)
+        fsd = {}
+
+        def sd_of(f):
+            if f not in fsd:
+                fsd[f] = _sd_to(P[vis[:, f]], X[vis[:, f], f],
+                                min(min_frames, int(vis[:, f].sum())))
+            return fsd[f]
+
+        seen = [vis[:, g].any(1) for g in groups]
+        moves = []
+        for a, g in enumerate(groups):
+            if len(g) < 2:
+                continue
+            for f in g:
+                miss = _misfit(X, vis, P, sd_of, f, [h for h in g if h != f], [a],
+                               rigid * s0, bound, voter_frames)
+                if not (miss.size and miss.min() > bound):
+                    continue
+                to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
+                      and _fits(_misfit(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
+                                        bound, voter_frames), bound)]
+                if len(to) == 1:
+                    moves.append((float(miss.min()), f, a, to[0]))
+        if not moves:
+            break
+        _, f, a, b = max(moves)
+        groups[a] = [h for h in groups[a] if h != f]
+        groups[b] = groups[b] + [f]
     return groups
 
 

@@ -296,3 +296,36 @@ def test_short_end_piece_on_a_segment_partner_is_moved_back(k):
                          jump_margin=np.inf)    # ... which the repair without jumps keeps
     assert any(len({int(owner[f]) for f in g}) > 1 for g in kept)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+def test_short_piece_of_another_segment_moves_to_the_marker_it_fits(monkeypatch):
+    """Benchmark figure 617: the linkage starts a marker with the first 11 frames of a marker
+    of another segment (4.6-9.4 mm from it over those frames; the piece's own marker
+    reappears 26 frames later). The piece barely moves the track's sd, so neither step 4
+    nor 4b sees it; its mean distance to the track's segment partners (rigid to it over
+    its 11 frames) is off by 3.6-4.7 mm (75-124 measured sd squared, bound 10.8), and it
+    sits at its own marker's distance from that marker's partners: step 4c
+    (``_move_misfits``) moves it there."""
+    from skeleton import markersets
+    fig, mo, X, owner = _bench_figure(617)
+    monkeypatch.setattr(markersets, "_move_misfits", lambda X, groups, *a, **kw: groups,
+                        raising=False)
+    kept = merge_fragments(X)
+    mixed = [g for g in kept.groups if len({int(owner[f]) for f in g}) > 1]
+    assert len(mixed) == 1                      # the failure this test guards against ...
+    piece = mixed[0][0]
+    n_seen = (~np.isnan(X[..., 0])).sum(0)
+    assert n_seen[piece] < 15                   # ... a short first piece ...
+    assert len({int(fig.marker_segment[owner[f]]) for f in mixed[0]}) == 2  # ... across segments
+    monkeypatch.undo()
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+def test_piece_supported_by_one_partner_stays():
+    """Benchmark figure 31: the first 33 frames of a marker sit 9.7 mm off its other
+    fragment's mean distance to a marker of another segment that is rigid to both (sd 1.8
+    and 2.6 mm, over > 100 frames), but at its distance (0.1 mm) from its segment partner.
+    Step 4c moves a piece only when no judge supports its marker (moving it when any judge
+    is off gave it to a marker of another segment that one judge fitted within 0.6 mm)."""
+    fig, mo, X, owner = _bench_figure(31)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
