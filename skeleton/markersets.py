@@ -654,19 +654,12 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
             return all(q.size and (~np.isnan(P[vis[:, f]][:, q, 0])).sum(0).max()
                        >= min_frames for f in set(g) - set(old))
 
-        fsd = {}
+        sd_of = _fragment_sd(X, vis, P, min_frames)
 
         def strict(a, b):
             """the tracks (not a, b) rigid to every fragment of a and b they are seen with
             for min_frames frames (step 4's jump partners)"""
-            ok, seen = np.ones(M, bool), np.zeros(M, bool)
-            for f in groups[a] + groups[b]:
-                if f not in fsd:
-                    fsd[f] = _sd_to(P[vis[:, f]], X[vis[:, f], f],
-                                    min(min_frames, int(vis[:, f].sum())))
-                ok &= np.isnan(fsd[f]) | (fsd[f] <= rigid * s0)
-                seen |= ~np.isnan(fsd[f])
-            ok &= seen
+            ok = _rigid_to_all(sd_of, groups[a] + groups[b], rigid * s0)
             ok[[a, b]] = False
             return np.flatnonzero(ok)
 
@@ -709,6 +702,30 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
     return groups
 
 
+def _fragment_sd(X, vis, P, min_frames):
+    """A cached ``sd_of(f)``: (M,) distance sd of fragment f to every track of P (T, M, 3),
+    NaN where they are seen together for too few frames (``_sd_to``)."""
+    cache: dict = {}
+
+    def sd_of(f):
+        if f not in cache:
+            cache[f] = _sd_to(P[vis[:, f]], X[vis[:, f], f], min(min_frames, int(vis[:, f].sum())))
+        return cache[f]
+    return sd_of
+
+
+def _rigid_to_all(sd_of, frags, rigid_sd) -> np.ndarray:
+    """(M,) bool: the tracks rigid (sd <= ``rigid_sd``) to every fragment of ``frags`` they
+    are seen with, and seen with at least one (``sd_of``: ``_fragment_sd``)."""
+    sds = [sd_of(f) for f in frags]
+    ok = np.ones(sds[0].shape, bool) if sds else np.zeros(0, bool)
+    seen = np.zeros_like(ok)
+    for sd in sds:
+        ok &= np.isnan(sd) | (sd <= rigid_sd)
+        seen |= ~np.isnan(sd)
+    return ok & seen
+
+
 def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames) -> np.ndarray:
     """How far fragment ``f`` sits from where the fragments ``kept`` (one marker) are.
     Judges: the tracks of P (T, M, 3) (not in ``excl``) rigid to f and to each kept
@@ -722,12 +739,7 @@ def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames) ->
     when no track judges)."""
     if not kept:
         return np.zeros(0)
-    ok = sd_of(f) <= rigid_sd
-    seen = np.zeros(P.shape[1], bool)
-    for h in kept:
-        ok &= np.isnan(sd_of(h)) | (sd_of(h) <= rigid_sd)
-        seen |= ~np.isnan(sd_of(h))
-    ok &= seen
+    ok = (sd_of(f) <= rigid_sd) & _rigid_to_all(sd_of, kept, rigid_sd)
     ok[excl] = False
     js = np.flatnonzero(ok)
     if js.size == 0:
@@ -758,13 +770,7 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
     for _ in range(max_rounds):
         P = _tracks(X, groups)
         M = len(groups)
-        fsd = {}
-
-        def sd_of(f):
-            if f not in fsd:
-                fsd[f] = _sd_to(P[vis[:, f]], X[vis[:, f], f],
-                                min(min_frames, int(vis[:, f].sum())))
-            return fsd[f]
+        sd_of = _fragment_sd(X, vis, P, min_frames)
 
         seen = [vis[:, g].any(1) for g in groups]
         moves = []
