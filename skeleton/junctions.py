@@ -30,7 +30,12 @@ the hub (its true joint a hinge at 0.87x and 0.96x the floor, the hub link 1.04x
 1.63x); without the cost condition seed 8013 lost its topology (siblings with hinge axes
 23 degrees apart fit a false hinge at 1.2x, against their hub links at 0.54x and 0.98x).
 Exact topology over seed sets 1000+ to 10000+ of benchmarks/bench_skeleton.py (1 mm
-noise): 484 -> 486 of 500, no figure lost.
+noise): 484 -> 486 of 500, no figure lost. A pair is not kept where both its hub links are
+sure hinge pairs too: three segments turning about one common axis through one point fit
+a hinge in each of their three pairs (a hinge of a hinge about the same axis is one), so
+the kept pair is no evidence there and the hub's star stands (seed 70012, 1 mm: sibling
+hinges 2.2 mm and 4.5 degrees apart, the false pair a hinge at 0.89x the floor against
+hub links at 0.94x and 1.01x; the tree hung one sibling from the other).
 Groups are found by centre distance, except where a centre is unreliable: the fitted joint
 of two 2-marker segments (or a world fit of one) may lie anywhere their few markers allow,
 tens of mm off the point the segments share, so siblings linked to each other form no group
@@ -185,13 +190,15 @@ def relative_spread(traj: np.ndarray, ma, mb, centre: np.ndarray) -> float:
 
 def _star(grp: set, hub: int, keep, cost: np.ndarray) -> set:
     """The group's links: the ``keep`` pairs inside it that fit better than the costlier
-    of their two hub links (cheapest first, as long as they make no cycle), then the hub's
-    star, cheapest link first, for the members not yet linked."""
+    of their two hub links, unless both of those are ``keep`` pairs too (one common hinge
+    axis: see the module docstring; cheapest first, as long as they make no cycle), then
+    the hub's star, cheapest link first, for the members not yet linked."""
     lab = {m: m for m in grp}
     nodes = sorted(grp)
     kept = [] if keep is None else sorted(
         ((a, b) for i, a in enumerate(nodes) for b in nodes[i + 1:] if keep[a, b]
-         and (hub in (a, b) or cost[a, b] < max(cost[hub, a], cost[hub, b]))),
+         and (hub in (a, b) or (cost[a, b] < max(cost[hub, a], cost[hub, b])
+                                and not (keep[hub, a] and keep[hub, b])))),
         key=lambda e: cost[e])
     star = sorted(((hub, m) for m in nodes if m != hub), key=lambda e: cost[e])
     out = set()

@@ -220,6 +220,47 @@ def test_kept_pair_stays_linked_inside_a_junction():
     assert {frozenset(map(int, e)) for e in out} == wrong
 
 
+def test_pair_kept_only_where_its_hub_links_are_no_sure_hinges():
+    """Where both hub links of a ``keep`` pair are ``keep`` pairs too, the three segments
+    turn about one common hinge axis: each pair fits a hinge, so the kept pair is no
+    evidence and the hub's star stands (the chain of
+    test_kept_pair_stays_linked_inside_a_junction, its kept pair dropped once p-a and p-c
+    are sure hinges as well; one of them alone does not drop it)."""
+    fig, p, a, b, c = _chain_at_one_point(0)
+    mo, members, truth, wrong, edges, centres = _swapped(fig, 0, (a, c), (p, c), a)
+    S = fig.n_segments
+    cost = np.full((S, S), 10.0)
+    for e in truth | wrong:
+        cost[tuple(e)] = cost[tuple(e)[::-1]] = 1.0
+    for (i, j), v in {(p, c): 1.5, (a, b): 2.0, (b, c): 2.0}.items():
+        cost[i, j] = cost[j, i] = v
+    keep = np.zeros((S, S), bool)
+    for i, j in ((a, c), (p, a)):
+        keep[i, j] = keep[j, i] = True
+    out = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=3.0,
+                            keep=keep)
+    assert {frozenset(map(int, e)) for e in out} == truth
+    keep[p, c] = keep[c, p] = True
+    out = resolve_junctions(mo.markers, members, edges, centres, cost, TOL_M, max_cost=3.0,
+                            keep=keep)
+    assert {frozenset(map(int, e)) for e in out} == wrong
+
+
+def test_coaxial_sibling_hinges_hang_from_their_parent():
+    """Seed 70012 of benchmarks/bench_skeleton.py (1 mm noise; first run as held out):
+    segments 1 and 2 hang from 0 by hinges 2.2 mm and 4.5 degrees apart, so 1-2 fits a
+    hinge too (0.89x the floor, the true joints 0.94x and 1.01x) and was kept linked inside
+    the junction {0, 1, 2, 3, 4}, hanging 2 from 1."""
+    from skeleton.pipeline import solve_skeleton
+    g = np.random.default_rng(70012)
+    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
+    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    assert fig.parents[1] == fig.parents[2] == 0
+    assert fig.joint_types[1] == fig.joint_types[2] == "hinge"
+    noisy = mo.markers + np.random.default_rng(12).normal(0, 1e-3, mo.markers.shape)
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
 @pytest.mark.parametrize("seed", [0, 300])
 def test_junction_found_from_a_fixed_point_when_a_centre_is_off(seed):
     """Siblings a, b at one point on p, linked a-b, with that edge's centre 0.2 m off the
