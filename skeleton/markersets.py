@@ -100,7 +100,23 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    the same mean distance from each (within 3x the measured sd), and match no other marker
    so, are one marker. A marker of a two-marker segment hidden for longer than the
    continuity window has no pose to align on and no continuity to join it (figure 166: 50
-   frames).
+   frames);
+7. two markers left as three ids (``_two_of_three``): on a segment with two markers the
+   linkage can join a fragment of one marker to a fragment of the other across a long gap
+   (figure 524: 77 frames, 8.1 mm pose-aligned on partners across joints; the right
+   continuation 20.1 mm), and the rest of the first marker then overlaps the rest of the
+   second: three ids, one mixed, that no merge or join can reduce. While there are still
+   more markers than the bound, three markers rigid to each other wherever two are seen
+   together (step 4's ``rigid_pair``; at least two of the three pairs measured) and with no
+   segment partner (step 4's: no other track rigid to their fragments over 80 % of their
+   frames) whose fragments split into two overlap-free markers in more than one way become
+   the split whose direction turns least across fragment changes (step 4's turning), when
+   it turns at least ``turn_margin`` (60 deg) less than every other split and its two
+   markers are rigid to each other (``rigid_pair``). On a two-marker segment every split
+   is rigid (figures 524, 719: 1.0 s0) and a wrong one flips the direction at a change
+   (524: right 27.5 deg, other 176.4; 719: 92.3 and 228.7); the rigidity keeps apart
+   markers of two segments rigid where seen together (figure 403: m9 and m19 at 3.0 s0,
+   with a piece of m9's partner m8: both splits 9.7 s0).
 
 The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
 (1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on
@@ -195,6 +211,14 @@ run at stop 18, 400-519 119 -> 119 of 120 and 520-639 115 -> 115 of 120 (failing
 524, 556, 569, 611, 617: pieces of another segment's marker or 2-marker segments, none a
 short piece on a marker of its own segment, the class the rule is for). Merge time x1.35
 -> x1.36 of steps 1-3 alone. Still failing in 0-399: 157, 186, 221, 339, 379.
+Step 7 (stop 20, designed on figures 524 and 719; the split's rigidity added after it
+joined a piece of m8 to m19 in figure 403, which was failing already), one merge per figure
+with the groups before and after step 7 (before = the code without it, exact since step 7
+is the last step and changes nothing where it finds no triple): figures 0-199 198 -> 198,
+200-399 197 -> 197, 400-639 235 -> 236 (524), 640-759 118 -> 119 (719), none lost; held
+out, first run at stop 20, 760-879 120 -> 120 (``bench_markersets.py 760 880``, identical
+per figure; merge time x1.40 -> x1.41 of steps 1-3 alone). Step 7 took 10 s of 1679 s of
+merging over 0-759. Still failing: 157, 186, 221, 339, 379, 403, 556, 569, 611, 718.
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -272,8 +296,9 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b, 4c, 5 and 6 of the module docstring (``swap_margin``:
-    the least gain in the rigidity cost for which fragments change marker).
+    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6 and 7 of the module docstring
+    (``swap_margin``: the least gain in the rigidity cost for which fragments change
+    marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
     extrapolations across a gap for which a pair beyond ``max_distance_m`` still merges
     (module docstring, step 3).
@@ -322,9 +347,107 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
                 continue
             res = _regroup(X, res, nxt)
         groups = _join_by_partners(X, [list(g) for g in res.groups], min_frames, first.n_min)
+        groups = _two_of_three(X, groups, min_frames, first.n_min)
         if len(groups) < res.n_markers:
             res = _with_groups(X, res, groups)
     return res
+
+
+def _colourings(X, vis, frags, limit=8) -> list:
+    """Every split of ``frags`` into two lists with no two fragments of one list seen in the
+    same frame (up to the order of the two), or [] when there is none (three fragments seen
+    together) or more than 2 ** ``limit``."""
+    F = len(frags)
+    ov = vis[:, frags].T.astype(int) @ vis[:, frags].astype(int) > 0
+    np.fill_diagonal(ov, False)
+    side = np.full(F, -1)
+    comps = []
+    for s in range(F):
+        if side[s] >= 0:
+            continue
+        side[s], stack, comp = 0, [s], [s]
+        while stack:
+            i = stack.pop()
+            for j in np.flatnonzero(ov[i]):
+                if side[j] < 0:
+                    side[j] = 1 - side[i]
+                    stack.append(j)
+                    comp.append(j)
+                elif side[j] == side[i]:
+                    return []                       # an odd cycle: three markers
+        comps.append(comp)
+    if len(comps) - 1 > limit:
+        return []
+    out = []
+    for flips in range(2 ** (len(comps) - 1)):
+        lab = side.copy()
+        for c, comp in enumerate(comps[1:]):
+            if flips >> c & 1:
+                lab[comp] = 1 - lab[comp]
+        out.append(([frags[i] for i in range(F) if lab[i] == 0],
+                    [frags[i] for i in range(F) if lab[i] == 1]))
+    return [(ga, gb) for ga, gb in out if ga and gb]
+
+
+def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.0,
+                  rigid_share=0.8, turn_margin=np.pi / 3) -> list:
+    """Step 7 (module docstring): while there are more markers than ``n_min``, three markers
+    rigid to each other wherever they are seen together (distance sd <= ``rigid_pair`` x the
+    measured sd s0, at least two of the three pairs measured), with no segment partner
+    (no other track rigid to their fragments, <= ``rigid_partner`` x s0, over
+    ``rigid_share`` of the frames: the turning rule's case of step 4), whose fragments split
+    into two overlap-free markers in more than one way, become the two markers of the split
+    whose direction turns least across fragment changes (``_turning``), when it turns at
+    least ``turn_margin`` less than every other split and its two markers are rigid to each
+    other (``rigid_pair``; figure 403: two markers of different segments, 3.0 s0 where seen
+    together, with a piece of a third would become a marker jumping between two distances)."""
+    vis = ~np.isnan(X[..., 0])
+    while len(groups) > n_min:
+        P = _tracks(X, groups)
+        M = len(groups)
+        S, s0 = _pair_sd(P, min_frames)
+        if not s0 > 0:
+            return groups
+        ok = S <= rigid_pair * s0
+        bad = S > rigid_pair * s0
+        triples = []
+        for a in range(M):
+            for b in np.flatnonzero(ok[a]):
+                # a-b rigid; c rigid to a or b, and not off either
+                for c in np.flatnonzero(ok[a] | ok[b]):
+                    if c != a and c != b and not (bad[a, c] or bad[b, c]):
+                        triples.append(tuple(sorted((a, int(b), int(c)))))
+        found = None
+        for a, b, c in sorted(set(triples)):
+            frs = groups[a] + groups[b] + groups[c]
+            splits = _colourings(X, vis, frs)
+            if len(splits) < 2:
+                continue
+            others = np.setdiff1d(np.arange(M), [a, b, c])
+            seen, rigid = np.zeros(others.size), np.zeros(others.size)
+            for f in frs:
+                Pf = P[vis[:, f]][:, others]
+                sf = _sd_to(Pf, X[vis[:, f], f], min(min_frames, int(vis[:, f].sum())))
+                n = (~np.isnan(Pf[..., 0])).sum(0)
+                m = ~np.isnan(sf)
+                seen[m] += n[m]
+                rigid[m] += n[m] * (sf[m] <= rigid_partner * s0)
+            if ((seen > 0) & (rigid >= rigid_share * seen)).any():
+                continue
+            turns = np.array([_turning(X, vis, ga, gb) for ga, gb in splits])
+            order = np.argsort(turns)
+            if turns[order[0]] > turns[order[1]] - turn_margin:
+                continue
+            # the two markers of the split are one segment's: rigid to each other
+            ta, tb = _tracks(X, list(splits[order[0]])).transpose(1, 0, 2)
+            if _sd_to(tb[:, None], ta, min_frames)[0] <= rigid_pair * s0:
+                found = (a, b, c, splits[order[0]])
+                break
+        if found is None:
+            return groups
+        a, b, c, (ga, gb) = found
+        groups = [g for m, g in enumerate(groups) if m not in (a, b, c)] + [ga, gb]
+    return groups
 
 
 def _with_groups(X, res: MarkerSets, groups) -> MarkerSets:

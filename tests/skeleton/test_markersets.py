@@ -329,3 +329,48 @@ def test_piece_supported_by_one_partner_stays():
     is off gave it to a marker of another segment that one judge fitted within 0.6 mm)."""
     fig, mo, X, owner = _bench_figure(31)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+@pytest.mark.parametrize("k", [524, 719])
+def test_two_marker_segment_left_as_three_ids_becomes_two(monkeypatch, k):
+    """Benchmark figures 524 and 719: on a segment with two markers (no partner to align a
+    pose on), the linkage joins a fragment of one marker to a fragment of the other across
+    a long gap (524: 77 frames, pose-aligned 8.1 mm; 719: 136 frames, 7.2 mm). The rest of
+    that marker then overlaps the other's rest, and the two markers stay three ids that no
+    step can join (one of them mixed). Their fragments split into two overlap-free markers
+    in two ways (both rigid to each other, 1.0 s0: on a two-marker segment only the
+    direction tells them apart); the right one turns the direction between them by 27.5 /
+    92.3 deg across fragment changes, the other by 176.4 / 228.7 deg: step 7
+    (``_two_of_three``) makes the two markers of the split that turns least (>= 60 deg,
+    step 4's ``turn_margin``, less)."""
+    from skeleton import markersets
+    fig, mo, X, owner = _bench_figure(k)
+    monkeypatch.setattr(markersets, "_two_of_three", lambda X, groups, *a, **kw: groups,
+                        raising=False)
+    kept = merge_fragments(X)
+    mixed = [g for g in kept.groups if len({int(owner[f]) for f in g}) > 1]
+    assert kept.n_markers == fig.n_markers + 1 and len(mixed) == 1   # the failure ...
+    (m, n) = sorted({int(owner[f]) for f in mixed[0]})
+    seg = fig.marker_segment[m]
+    assert fig.marker_segment[n] == seg and (fig.marker_segment == seg).sum() == 2  # ... here
+    monkeypatch.undo()
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+def test_three_ids_of_two_segments_stay_apart(monkeypatch):
+    """Benchmark figure 403: before step 7 a marker of a two-marker segment (m9), a piece of
+    its partner (m8) and a marker of another segment (m19, 3.0 s0 from m9 where seen
+    together) are three ids rigid where seen together; their fragments split two ways, one
+    turning 63.9 deg, the other 147.7. Both splits make a marker jumping between two
+    distances from the other (distance sd 9.7 s0): step 7 takes only a split whose two
+    markers are rigid to each other (step 4's ``rigid_pair``), so it leaves them apart."""
+    from skeleton import markersets
+    fig, mo, X, owner = _bench_figure(403)
+    monkeypatch.setattr(markersets, "_two_of_three", lambda X, groups, *a, **kw: groups,
+                        raising=False)
+    before = merge_fragments(X)
+    monkeypatch.undo()
+    assert before.n_markers > before.n_min              # step 7 looks at this figure
+    groups = [list(g) for g in before.groups]
+    after = markersets._two_of_three(X, [list(g) for g in groups], MIN_FRAMES, before.n_min)
+    assert sorted(map(sorted, after)) == sorted(map(sorted, groups))
