@@ -353,6 +353,21 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     return res
 
 
+def _partner_frames(X, vis, P, frs, others, min_frames, rigid_sd) -> tuple:
+    """For the tracks ``others`` (columns of ``P``): the frames each is seen with the
+    fragments ``frs``, and of those the frames of fragments it is rigid to (distance sd <=
+    ``rigid_sd``): a segment partner of the fragments (step 4) is rigid over most of them."""
+    seen, rigid = np.zeros(others.size), np.zeros(others.size)
+    for f in frs:
+        Pf = P[vis[:, f]][:, others]
+        sf = _sd_to(Pf, X[vis[:, f], f], min(min_frames, int(vis[:, f].sum())))
+        n = (~np.isnan(Pf[..., 0])).sum(0)
+        ok = ~np.isnan(sf)
+        seen[ok] += n[ok]
+        rigid[ok] += n[ok] * (sf[ok] <= rigid_sd)
+    return seen, rigid
+
+
 def _colourings(X, vis, frags, limit=8) -> list:
     """Every split of ``frags`` into two lists with no two fragments of one list seen in the
     same frame (up to the order of the two), or [] when there is none (three fragments seen
@@ -423,15 +438,8 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
             splits = _colourings(X, vis, frs)
             if len(splits) < 2:
                 continue
-            others = np.setdiff1d(np.arange(M), [a, b, c])
-            seen, rigid = np.zeros(others.size), np.zeros(others.size)
-            for f in frs:
-                Pf = P[vis[:, f]][:, others]
-                sf = _sd_to(Pf, X[vis[:, f], f], min(min_frames, int(vis[:, f].sum())))
-                n = (~np.isnan(Pf[..., 0])).sum(0)
-                m = ~np.isnan(sf)
-                seen[m] += n[m]
-                rigid[m] += n[m] * (sf[m] <= rigid_partner * s0)
+            seen, rigid = _partner_frames(X, vis, P, frs, np.setdiff1d(np.arange(M), [a, b, c]),
+                                          min_frames, rigid_partner * s0)
             if ((seen > 0) & (rigid >= rigid_share * seen)).any():
                 continue
             turns = np.array([_turning(X, vis, ga, gb) for ga, gb in splits])
@@ -654,14 +662,8 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                     continue
                 # segment partners: rigid to the fragments themselves (whatever their marker)
                 others = np.r_[0:a, a + 1:b, b + 1:M]
-                seen, rigid = np.zeros(others.size), np.zeros(others.size)
-                for f in frs:
-                    Pf = P[vis[:, f]][:, others]
-                    sf = _sd_to(Pf, X[vis[:, f], f], min(min_frames, int(vis[:, f].sum())))
-                    n = (~np.isnan(Pf[..., 0])).sum(0)
-                    ok = ~np.isnan(sf)
-                    seen[ok] += n[ok]
-                    rigid[ok] += n[ok] * (sf[ok] <= rigid_partner * s0)
+                seen, rigid = _partner_frames(X, vis, P, frs, others, min_frames,
+                                              rigid_partner * s0)
                 # partners rigid to every fragment they are seen with: they judge the jumps
                 strict = others[(seen > 0) & (rigid == seen)]
                 others = others[(seen > 0) & (rigid >= rigid_share * seen)]
