@@ -215,6 +215,13 @@ class _Completed:
         return ((i in an or j in an) and an.get(i, (-1,))[0] != j
                 and an.get(j, (-1,))[0] != i)
 
+    def anchored(self, i, j) -> bool:
+        """Whether one of the pair is the other's anchor segment (``_anchor_points``: the
+        anchored one fits a joint in the anchor's completed frame within ANCHOR x the
+        floor)."""
+        an = self.anchors
+        return an.get(i, (-1,))[0] == j or an.get(j, (-1,))[0] == i
+
     def raise_false(self, cost, i, j, floor) -> bool:
         """Whether the pair's completed fit costs > FALSIFY x ``floor`` (x CLEAN_NOISE_M
         at least: clean data is treated as noisy at that level); then ``cost`` (in place)
@@ -490,12 +497,14 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
             # 2000/3000/6000), so clean data is rejected above FALSIFY x CLEAN_NOISE_M.
             # Between `upper` and BROKEN_M a pair is searched only when its completed frames
             # accept it (seed 25032, 1 mm: a true pair's closed-form start cost 3.7 mm, 13x
-            # the floor; completed, 0.9-1.1x)
+            # the floor; completed, 0.9-1.1x) - or one is the other's anchor: the anchor's
+            # completed frame fitted it within ANCHOR x the floor (seed 74049, 1 mm: a true
+            # pair's closed-form start 15.3x the floor, left unsearched; searched, 1.09x)
             if completed.applies(i, j):
                 if completed.raise_false(cost, i, j, floor):
                     mst = skeleton_tree(cost)
                     continue
-            elif upper <= cost[i, j] <= BROKEN_M:
+            elif upper <= cost[i, j] <= BROKEN_M and not completed.anchored(i, j):
                 continue
             pc = joint_cost(smooth, members[i], members[j], detail=True, min_quality=min_q)
             if pc.cost < cost[i, j]:

@@ -10,7 +10,7 @@ import pytest
 from hw_sim.articulated import MIN_MARKER_SPACING_M, animate, random_tree
 from skeleton.joints import (HINGE_RATIO, JOINT_REACH_M, _inv3_sym, fit_joint, frame_quality,
                              joint_cost)
-from skeleton.pipeline import (FALSIFY, FALSIFY_BELOW, HINGE_SURE, JUNCTION_K, POOR_FRAME,
+from skeleton.pipeline import (ANCHOR, FALSIFY, FALSIFY_BELOW, HINGE_SURE, JUNCTION_K, POOR_FRAME,
                                _Completed, _path_max, _raise_split_siblings, _tree_floor,
                                lowpass, solve_skeleton)
 from skeleton.segments import distance_sd
@@ -347,3 +347,18 @@ def test_two_marker_pair_without_a_joint_near_its_markers_is_no_joint():
     assert np.isfinite(true_pc.cost) and true_pc.cost < 1.5 * NOISE_M
     assert max(true_pc.radii[:2].min(), true_pc.radii[2:].min()) < JOINT_REACH_M
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
+def test_pair_anchored_on_the_other_is_searched():
+    """Seed 74049 of benchmarks/bench_skeleton.py (1 mm noise; first run at stop 20):
+    2-marker segment 5 hangs from 2-marker segment 1, and 5's anchor is 1's completed frame,
+    where 5 fits a joint within ANCHOR x the floor. The pair's closed-form start cost 15.3x
+    the floor, between RECHECK x the floor and BROKEN_M, where a pair is searched only when
+    completed frames accept it, and a pair with its own anchor was no completed-frame test:
+    it was never searched, and the tree hung 5 from 0 (6.95x). Searched, it costs 1.09x."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(74049)
+    assert fig.parents[5] == 1 and len(m[1]) == len(m[5]) == 2
+    res = solve_skeleton(noisy, mo.rate_hz, rng=0)
+    sm = segment_map(fig, res.labels)
+    assert res.cost[sm[1], sm[5]] <= ANCHOR * _tree_floor(res.cost)
+    assert res.parents[sm[5]] == sm[1] or res.parents[sm[1]] == sm[5]     # the tree has it
