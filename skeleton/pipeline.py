@@ -211,9 +211,9 @@ class _Completed:
         self.costs: dict[tuple, float] = {}
 
     def applies(self, i, j) -> bool:
-        an = self.anchors
-        return ((i in an or j in an) and an.get(i, (-1,))[0] != j
-                and an.get(j, (-1,))[0] != i)
+        """Whether a completed frame can test the pair: one of them has an anchor, and
+        neither is the other's anchor."""
+        return (i in self.anchors or j in self.anchors) and not self.anchored(i, j)
 
     def anchored(self, i, j) -> bool:
         """Whether one of the pair is the other's anchor segment (``_anchor_points``: the
