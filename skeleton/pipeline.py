@@ -32,6 +32,7 @@ from scipy.signal import butter, sosfiltfilt
 from threadpoolctl import threadpool_limits
 
 from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_cost
+from skeleton.rigid import kabsch
 from skeleton.segments import distance_sd, noise_sd, segment_markers
 from skeleton.junctions import Junction, joint_gap, joint_spread, resolve_junctions
 from skeleton.topology import skeleton_tree, tree_from_edges
@@ -64,6 +65,12 @@ PARALLEL_PAIRS = 28     # pair costs computed in forked processes from this many
                        # segments): the pool's start-up, ~0.015 s, against ~0.01 s per pair
                        # (largest benchmark case, 78 pairs: 0.77 -> 0.43 s on 2 cores)
 CLEAN_NOISE_M = 1e-4   # within-segment distance sd below which the data is not filtered
+WORLD_GAIN = 8.0       # a joint centre carried by its reference frame with more noise than
+                       # this x the marker noise is placed by the world-frame fit
+                       # (_world_centre). True joints of seed sets 1000-3000 (1 mm), frame
+                       # fit / world fit error: gain >= 8, 8 joints, world better in all 8
+                       # (frame up to 31.9 mm, world <= 6.2); gain 5-8, 23 joints, mixed
+                       # (world up to 49 mm)
 HINGE_SURE = 1.5       # hinge pairs costing at most this x the median tree-edge cost: sure
 JUNCTION_K = 25.0      # tree joints closer than this x the within-segment distance sd: one
 JUNCTION_COST = 1.5    # junction (skeleton.junctions), re-linked with edges costing at most
@@ -132,6 +139,34 @@ def _point_noise_gain(ref_pts: np.ndarray, point: np.ndarray) -> float:
     lx = np.cross(np.eye(3), point - ref_pts.mean(0))
     C = np.eye(3) / ref_pts.shape[0] + lx @ np.linalg.pinv(inertia(ref_pts)) @ lx.T
     return float(np.sqrt(np.trace(C) / 3))
+
+
+def _world_centre(data, members, p: int, s: int, f: JointFit, noise_m: float) -> JointFit:
+    """The joint (p, s) ``f``, fitted in one segment's frame, with its centre placed by the
+    world-frame fit (``fit_joint`` of both segments' markers without a frame) where that
+    frame carries the centre with more than WORLD_GAIN x the marker noise
+    (``_point_noise_gain``). Such a frame's rotation noise moves the other segment's markers
+    by its lever arm, which biases the sphere fit, not only blurs it. The world fit's
+    per-frame centres are kept where it has all markers. Elsewhere the centre is their
+    mean in the reference frame, carried by that frame. Cost, hinge and axis stay the
+    frame fit's."""
+    if not f.ok or f.ref not in (0, 1):
+        return f
+    ref = members[p] if f.ref == 0 else members[s]
+    full = np.flatnonzero(~np.isnan(data[:, ref]).any(axis=(1, 2)))
+    if full.size == 0 or _point_noise_gain(data[full[0], ref], f.world[full[0]]) <= WORLD_GAIN:
+        return f
+    w = fit_joint(data, members[p], members[s], noise_m=noise_m, min_quality=np.inf)
+    both = full[~np.isnan(w.world[full]).any(1)] if w.ok else full[:0]
+    if both.size < 10:
+        return f
+    R, t = kabsch(data[full][:, ref], data[full[0], ref])
+    k = np.searchsorted(full, both)
+    local = (np.einsum("tij,tj->ti", R[k], w.world[both]) + t[k]).mean(0)
+    world = np.full_like(f.world, np.nan)
+    world[full] = np.einsum("tji,tj->ti", R, local[None] - t)
+    world[both] = w.world[both]
+    return replace(f, centre_local=local, world=world)
 
 
 def _anchor_points(data, members, cost, floor, frameless, min_quality: float = 0.0
@@ -540,8 +575,9 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
             r = radii.get((min(p, s), max(p, s)))
             if r is not None and p > s:     # radii follow the markers' order: a's, then b's
                 r = np.concatenate([r[members[s].size:], r[:members[s].size]])
-            fits[p, s] = fit_joint(fit_data, members[p], members[s], noise_m=floor, radii=r,
-                                   min_quality=min_q)
+            fits[p, s] = _world_centre(fit_data, members, p, s, fit_joint(
+                fit_data, members[p], members[s], noise_m=floor, radii=r, min_quality=min_q),
+                floor)
         return fits[p, s]
 
     def tree_joints(parents) -> dict:

@@ -1,7 +1,8 @@
 """Evidence the topology uses beside the joint cost, vs hw_sim truth (fast): the statistical
 hinge test, hinge pairs taken first by the tree, the 2+2 multi-start search, the cycle
 pruning of rechecks, the 3x3 inverse of the world-frame solver, cramped 3-marker frames
-fitted in world coordinates, and false pairs of frameless segments raised by anchor joints."""
+fitted in world coordinates, and false pairs of frameless segments raised by anchor joints;
+joints far from a cramped frame placed by the world fit."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,8 +12,8 @@ from hw_sim.articulated import MIN_MARKER_SPACING_M, animate, random_tree
 from skeleton.joints import (HINGE_RATIO, JOINT_REACH_M, _inv3_sym, fit_joint, frame_quality,
                              joint_cost)
 from skeleton.pipeline import (ANCHOR, FALSIFY, FALSIFY_BELOW, HINGE_SURE, JUNCTION_K, POOR_FRAME,
-                               _Completed, _path_max, _raise_split_siblings, _tree_floor,
-                               lowpass, solve_skeleton)
+                               WORLD_GAIN, _Completed, _path_max, _point_noise_gain,
+                               _raise_split_siblings, _tree_floor, lowpass, solve_skeleton)
 from skeleton.segments import distance_sd
 from skeleton.topology import skeleton_tree
 from tests.skeleton._figures import (exact_topology, largest_case, segment_map,
@@ -362,3 +363,30 @@ def test_pair_anchored_on_the_other_is_searched():
     sm = segment_map(fig, res.labels)
     assert res.cost[sm[1], sm[5]] <= ANCHOR * _tree_floor(res.cost)
     assert res.parents[sm[5]] == sm[1] or res.parents[sm[1]] == sm[5]     # the tree has it
+
+
+def test_joint_far_from_a_cramped_frame_is_placed_by_the_world_fit():
+    """Seed 76033 of benchmarks/bench_skeleton.py (1 mm noise; first run at stop 20): hinge
+    2-5 is fitted in 5's frame (3 markers, two of them 22 mm apart), which carries the
+    centre with ~11x the marker noise. The frame's rotation noise moves 2's markers by
+    the lever arm, which biases the sphere fit: the frame fit's centre lies 47 mm off the
+    axis. The world-frame fit of the five markers has no frame to carry it."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(76033)
+    assert fig.parents[5] == 2 and fig.joint_types[5] == "hinge"
+    assert (len(m[2]), len(m[5])) == (2, 3)
+    ax = np.einsum("tij,j->ti", mo.world_from_segment_R[:, 5], fig.hinge_axes[5])
+
+    def off_axis(world):
+        d = world - mo.joint_centres[:, 5]
+        return np.nanmedian(np.linalg.norm(d - (d * ax).sum(1, keepdims=True) * ax, axis=1))
+
+    fd = lowpass(noisy, mo.rate_hz)                 # the final fits' data (untrimmed)
+    f = fit_joint(fd, m[2], m[5], min_quality=min_q)
+    assert f.ref == 1
+    seen = np.flatnonzero(~np.isnan(f.world).any(1))[0]
+    assert _point_noise_gain(fd[seen, m[5]], f.world[seen]) > WORLD_GAIN
+    assert off_axis(f.world) > 0.040
+    res = solve_skeleton(noisy, mo.rate_hz, rng=0)
+    sm = segment_map(fig, res.labels)
+    assert exact_topology(fig, res)
+    assert solver_joint_errors(fig, mo, res, sm)[5 - 1] < 0.005     # (hinges: off the axis)
