@@ -599,15 +599,23 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
         centres = {frozenset((int(top.parents[s]), s)): f.world for s, f in pre.items()}
         axes = {frozenset((int(top.parents[s]), s)): f.axis_world for s, f in pre.items()}
         tree_cost = cost[tuple(top.edges.T)]
+
+        def is_hinge(a, b) -> bool:
+            """the pair's fit is a hinge; two frameless segments' world fit never is, so
+            for them: the tree edge's fit in a completed frame (``_completed_fits``), where
+            the tree has the pair (seed 85038, 1 mm: sibling hinges 35.6 mm apart on a
+            2-marker parent; the true 2+2 link, a hinge in its completed frame, counted as
+            none, and the sibling whose star had two hinge fits took the group)"""
+            if not (world[a] and world[b]):
+                return fit(a, b).hinge
+            c = b if top.parents[b] == a else a if top.parents[a] == b else None
+            return c is not None and pre[c].hinge
         edges = resolve_junctions(fit_data, members, top.edges, centres, cost,
                                   tol_m=JUNCTION_K * noise_m,
                                   max_cost=JUNCTION_COST * float(np.max(tree_cost)), axes=axes,
                                   recost=lambda a, b: joint_cost(smooth, members[a], members[b],
                                                                  min_quality=min_q),
-                                  # (a world fit between two frameless segments is never
-                                  # a hinge: no fit needed)
-                                  is_hinge=lambda a, b: not (world[a] and world[b])
-                                  and fit(a, b).hinge, record=junctions,
+                                  is_hinge=is_hinge, record=junctions,
                                   keep=sure, floor_m=floor)
         top = tree_from_edges(S, edges)
     final = tree_joints(top.parents)

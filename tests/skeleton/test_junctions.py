@@ -261,6 +261,24 @@ def test_coaxial_sibling_hinges_hang_from_their_parent():
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
 
 
+def test_hinge_of_two_frameless_segments_counts_for_its_hub():
+    """Seed 85038 of benchmarks/bench_skeleton.py (1 mm noise; first run at stop 21):
+    segments 7 (2 markers) and 14 (3 markers) hang from 3 (2 markers) by hinges whose
+    centres lie 35.6 mm apart, found as one junction {3, 7, 14}. The hub's stars are ranked
+    by their hinge pairs first. The true link 3-7 is a world fit, never a hinge, so 3's star
+    counted one hinge; 14's counted two (7-14 moves in a plane), and 7 hung from 14. In 3's
+    completed frame 3-7 is a hinge."""
+    from skeleton.pipeline import solve_skeleton
+    g = np.random.default_rng(85038)
+    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
+    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    assert fig.parents[7] == fig.parents[14] == 3
+    assert [fig.joint_types[s] for s in (7, 14)] == ["hinge", "hinge"]
+    assert [int((fig.marker_segment == s).sum()) for s in (3, 7, 14)] == [2, 2, 3]
+    noisy = mo.markers + np.random.default_rng(38).normal(0, 1e-3, mo.markers.shape)
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
 @pytest.mark.parametrize("seed", [0, 300])
 def test_junction_found_from_a_fixed_point_when_a_centre_is_off(seed):
     """Siblings a, b at one point on p, linked a-b, with that edge's centre 0.2 m off the
