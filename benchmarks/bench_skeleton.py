@@ -22,7 +22,8 @@ first run at stop 18 and two of its rules were chosen on their failures (48012, 
 on 63031; 66000-69000 first run on fa5cce5; 70000-73000 first run at stop 20 on 4a8c3a6,
 whose rule 5e9d3d3 was chosen on 70012; 74000 and 75000 first run on 5e9d3d3, and 74049 then
 showed the anchored-pair search of stop 20 (f405241); 76000 and 77000 first run on f405241;
-78000+ untouched)
+78000-85000 first run at stop 21 on 74881a7, and 85038 then showed the hinge evidence of
+d6009f7; 86000-89000 first run on d6009f7; 90000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
