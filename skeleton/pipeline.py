@@ -9,7 +9,8 @@ process per CPU) - both on 6 Hz low-passed data when the data is noisy,
 ``skeleton.junctions`` (segments meeting at one point re-linked around their hub, sure hinge
 pairs kept; found on the tree's joints as the final fit makes them), root = tree centre,
 then a refined joint fit per tree edge (``_completed_fits``: a joint between two frameless
-segments fitted in one's frame completed by a neighbour's joint). Segments without
+segments fitted in one's frame completed by a neighbour's joint; ``_world_centre``: a centre
+its reference frame carries too noisily placed by the world-frame fit). Segments without
 a usable frame (two markers, or markers within the noise of a line) are fitted in world
 coordinates from a closed-form start, re-searched from many starts where the tree could
 take them; their cheap pairs are then re-tested with an anchor joint completing their frame
