@@ -734,7 +734,7 @@ def _cross_alternatives(span: dict, ga, gb):
 
 
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
-                  max_rounds=10, jump_margin=10.8):
+                  max_rounds=10, jump_margin=10.8, one_body=1.5, turn_margin=np.pi / 3):
     """Step 4b (module docstring): runs of fragments exchanged between two markers, judged
     by voting fragments. Every fragment seen in >= ``voter_frames`` frames votes with its
     partners: the markers rigid to it (distance sd <= ``rigid`` x the measured sd ``s0``
@@ -746,7 +746,16 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
     sum by at least ``margin`` (at most ``max_rounds`` rounds). No fragment is moved where
     no partner of the receiving track's voters is seen with it for ``min_frames`` frames,
     and no exchange is made that raises step 4's jump cost (``_jumps``, partners rigid to
-    every fragment of the two markers) by ``jump_margin`` times s0 squared."""
+    every fragment of the two markers) by ``jump_margin`` times s0 squared, nor - between
+    two markers that move as one rigid body (distance sd <= ``one_body`` (1.5) x s0, the
+    factor at which skeleton.segments merges two clusters) - one that makes the direction
+    between them turn by ``turn_margin`` more across fragment changes (``_turning``: a swap
+    flips it). Step 4's looser ``rigid_pair`` (5 x s0) let the veto block a right exchange
+    in figure 261: markers of two segments at 4.8 x s0, whose direction turned 99 -> 161 deg
+    when put right. Figure 939: the two markers of a 2-marker segment had
+    their first runs exchanged on voters whose partners across joints were rigid over the
+    voters' frames only; the jump test did not block it (its two judges are markers of the
+    next segment, rigid to both markers), and the turning went 40.5 -> 172.6 deg."""
     vis = ~np.isnan(X[..., 0])
     span = {f: (int(np.flatnonzero(vis[:, f])[0]), int(np.flatnonzero(vis[:, f])[-1]))
             for g in groups for f in g}
@@ -781,6 +790,13 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
 
         sd_of = _fragment_sd(X, vis, P, min_frames)
 
+        def turning_judged(a, b):
+            """the pair's turning (``_turning``) where the two move as one rigid body
+            (distance sd <= ``one_body`` x s0), else None"""
+            if not _sd_to(P[:, [b]], P[:, a], min_frames)[0] <= one_body * s0:
+                return None
+            return _turning(X, vis, groups[a], groups[b])
+
         def strict(a, b):
             """the tracks (not a, b) rigid to every fragment of a and b they are seen with
             for min_frames frames (step 4's jump partners)"""
@@ -804,7 +820,7 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                     [part[f] for f in groups[a] + groups[b] if f in part] + [[]]),
                     ex).astype(int)
                 now = score(groups[a], P[:, a], q) + score(groups[b], P[:, b], q)
-                jumps = None
+                jumps, turns = None, False
                 for na, nb in alts:
                     if not (checked(na, groups[a], ex) and checked(nb, groups[b], ex)):
                         continue
@@ -818,6 +834,11 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                                            jump_margin * s0 ** 2)
                         now_j, alt_j = jumps
                         if alt_j[alts.index((na, nb))] >= now_j + jump_margin * s0 ** 2:
+                            continue
+                        if turns is False:
+                            turns = turning_judged(a, b)
+                        if turns is not None and (_turning(X, vis, na, nb)
+                                                  >= turns + turn_margin):
                             continue
                         best = (gain, a, b, na, nb)
         if best is None:

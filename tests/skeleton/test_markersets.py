@@ -374,3 +374,26 @@ def test_three_ids_of_two_segments_stay_apart(monkeypatch):
     groups = [list(g) for g in before.groups]
     after = markersets._two_of_three(X, [list(g) for g in groups], MIN_FRAMES, before.n_min)
     assert sorted(map(sorted, after)) == sorted(map(sorted, groups))
+
+
+def test_cross_exchange_never_flips_a_rigid_pair(monkeypatch):
+    """Benchmark figure 939 (first run at stop 21): the linkage merges every marker right,
+    but step 4b exchanged the first runs of the two markers of a 2-marker segment, on voters
+    whose partners across joints were rigid over the voters' frames only. The direction
+    between the two markers then turned 172.6 deg across fragment changes instead of
+    40.5 deg; an exchange that turns a pair moving as one rigid body by ``turn_margin``
+    more is not made."""
+    import functools
+
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(939)
+    before = merge_fragments(X, repair_swaps=False)
+    assert all(len({int(owner[f]) for f in g}) == 1 for g in before.groups)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    # without the turning veto, step 4b mixes the two markers (the failure guarded against)
+    monkeypatch.setattr(ms, "_repair_cross",
+                        functools.partial(ms._repair_cross, turn_margin=np.inf))
+    mixed = [g for g in merge_fragments(X).groups if len({int(owner[f]) for f in g}) > 1]
+    assert {frozenset(int(owner[f]) for f in g) for g in mixed} == {frozenset((11, 12))}
+    assert fig.marker_segment[11] == fig.marker_segment[12]
+    assert (fig.marker_segment == fig.marker_segment[11]).sum() == 2
