@@ -80,7 +80,10 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    ``min_frames`` frames (else a piece could be dumped where nothing judges it), nor one
    that raises step 4's jump cost of the two markers by ``jump_margin`` times the measured
    sd squared (a voter's partners may be rigid over its frames only: in figure 372 they
-   put back a piece that step 4's jumps had moved);
+   put back a piece that step 4's jumps had moved), nor one that makes the direction
+   between two markers moving as one rigid body (distance sd <= 1.5 times the measured sd)
+   turn by ``turn_margin`` more across fragment changes (figure 939: the two markers of a
+   2-marker segment, 40.5 -> 172.6 deg);
 4c. misfit pieces (``_move_misfits``): a piece too short to move a track's sd (figure 617:
    the first 11 frames of a marker whose next piece starts 26 frames later, given to a
    marker of another segment 4.6-9.4 mm from it over those frames) is judged by the jumps
