@@ -576,15 +576,21 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
             r = radii.get((min(p, s), max(p, s)))
             if r is not None and p > s:     # radii follow the markers' order: a's, then b's
                 r = np.concatenate([r[members[s].size:], r[:members[s].size]])
-            fits[p, s] = _world_centre(fit_data, members, p, s, fit_joint(
-                fit_data, members[p], members[s], noise_m=floor, radii=r, min_quality=min_q),
-                floor)
+            fits[p, s] = fit_joint(fit_data, members[p], members[s], noise_m=floor, radii=r,
+                                   min_quality=min_q)
         return fits[p, s]
 
+    placed: dict[tuple, JointFit] = {}      # tree edges' fits, centres by _world_centre
+
+    def tree_joint(p, s):
+        if (p, s) not in placed:
+            placed[p, s] = _world_centre(fit_data, members, p, s, fit(p, s), floor)
+        return placed[p, s]
+
     def tree_joints(parents) -> dict:
-        """child -> JointFit of every tree edge, world fits between two frameless segments
-        re-fitted in completed frames (``_completed_fits``)"""
-        out = {int(s): fit(int(parents[s]), int(s)) for s in range(S) if parents[s] >= 0}
+        """child -> JointFit of every tree edge (``_world_centre``), world fits between two
+        frameless segments re-fitted in completed frames (``_completed_fits``)"""
+        out = {int(s): tree_joint(int(parents[s]), int(s)) for s in range(S) if parents[s] >= 0}
         out.update(_completed_fits(fit_data, members, parents, out, min_q, memo))
         return out
 
