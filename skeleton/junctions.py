@@ -17,7 +17,19 @@ few mm apart (each summed over the hub's star and divided by its mean over the c
 hubs, weight ``COST_WEIGHT``): on 93 junctions of the solver's own trees over seed sets
 1000+, 2000+ and 3000+ of benchmarks/bench_skeleton.py (1 mm noise) the prior alone picked
 the true hub in 88, the cost sum alone in 63, both in 90. Hinge fits are evidence, not a
-prior: hubs whose star has the most hinge pairs are kept first (``is_hinge``). A hub whose
+prior: hubs whose star has the most hinge pairs are kept first (``is_hinge``). So is the
+likelihood of the whole star: each remaining candidate's star is fitted as one articulated
+model to all the group's markers (``skeleton.star_fit``: same markers, same number of
+parameters), and a hub whose star's residual sum of squares is lower than every other
+candidate's by more than ``STAR_MARGIN`` (200) times its residual variance per residual is
+chosen without the prior. The threshold was set on the 188 true sibling pairs within 10 mm
+of each other in seed sets 90000-92000 of benchmarks/bench_skeleton.py (1 mm noise,
+low-passed, the parent and the two siblings alone, the true junction point): the parent's
+star fitted best in 167; all 118 margins above 200x were the parent's (gaps 1.2-9.9 mm);
+below it, noise alone reached 122x for a wrong hub (gap 0.8 mm), and a hinge whose axis
+passes near the sibling's joint made a near-equivalent wrong star win by 179x (90017). By
+gap: < 1 mm 11 of 23 best (none above 200x), 1-3 mm 35 of 42 (11 above), >= 3 mm 121 of
+123 (107 above). A hub whose
 star would use an edge costing more than ``max_cost`` is not considered. A group that no
 member can join as a hub chained distinct junctions (each joint within the tolerance of the
 next): it is split at half the tolerance, up to ``SPLIT_DEPTH`` times, and each tighter group
@@ -57,6 +69,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from skeleton.star_fit import star_misfit
+
 __all__ = ["Junction", "joint_gap", "joint_spread", "junction_groups", "relative_spread",
            "resolve_junctions"]
 
@@ -64,6 +78,9 @@ SPREAD_FRAMES = 200
 SPLIT_DEPTH = 2     # a group without a hub is split at half the tolerance, at most this often
 FIXED_FRAMES = 200  # frames sampled for the fixed-point test of junction_groups
 FIXED_K = 4.0       # ... its threshold, x the joint-cost floor (see the module docstring)
+STAR_MARGIN = 200.0  # a hub whose star model (skeleton.star_fit) fits the group's markers
+                     # better than every other candidate's by more than this x its residual
+                     # variance per residual is chosen by that fit (see the module docstring)
 COST_WEIGHT = 1.0   # the star's summed joint cost beside the summed relative rotation, each
                     # over its mean across the candidate hubs
 
@@ -249,6 +266,14 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
         if is_hinge is not None:
             n_hinge = [sum(bool(is_hinge(h, m)) for m in group if m != h) for h in hubs]
             hubs = [h for h, n in zip(hubs, n_hinge) if n == max(n_hinge)]
+        if len(hubs) > 1 and np.isfinite(STAR_MARGIN):
+            fits = [star_misfit(traj, members, group, h, c) for h in hubs]
+            ssq = np.array([f.ssq_m2 if f.ok else np.inf for f in fits])
+            order = np.argsort(ssq)
+            if np.isfinite(ssq[order[1]]) and fits[order[0]].n_res > 0:
+                var = ssq[order[0]] / fits[order[0]].n_res
+                if ssq[order[1]] - ssq[order[0]] > STAR_MARGIN * var:
+                    return hubs[int(order[0])]
         spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
                                for m in group if m != h) for h in hubs])
         star = np.array([sum(cost[h, m] for m in group if m != h) for h in hubs])

@@ -36,6 +36,7 @@ from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_c
 from skeleton.rigid import kabsch
 from skeleton.segments import distance_sd, noise_sd, segment_markers
 from skeleton.junctions import Junction, joint_gap, joint_spread, resolve_junctions
+from skeleton.relink import relink_by_stars
 from skeleton.topology import skeleton_tree, tree_from_edges
 
 __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
@@ -625,6 +626,14 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                   is_hinge=is_hinge, record=junctions,
                                   keep=sure, floor_m=floor)
         top = tree_from_edges(S, edges)
+    # Two tree edges sharing a segment: the triple's three stars fitted to its markers; a
+    # neighbour's star that fits decisively better re-links it (skeleton.relink)
+    if S > 2:
+        parents, moves = relink_by_stars(
+            fit_data, members, top.parents,
+            lambda par: {s: f.world for s, f in tree_joints(par).items()}, cost, floor, log=say)
+        if moves:
+            top = tree_from_edges(S, [(s, int(parents[s])) for s in range(S) if parents[s] >= 0])
     final = tree_joints(top.parents)
     # each junction's spread over its final joints (a centre the group was found around may
     # lie off the junction: skeleton.junctions' fixed-point test; a world fit is re-fitted

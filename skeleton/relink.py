@@ -1,0 +1,96 @@
+"""Re-link a skeleton tree where a neighbouring star fits the markers decisively better.
+
+``relink_by_stars(traj, members, parents, joint_starts, cost, floor_m) -> (parents, moves)``.
+Every two tree edges that share a segment b (a - b - c) form a triple whose three trees are
+the three stars around a, b and c. The minimum spanning tree picked b as the hub on pairwise
+joint costs, which compare fits over different markers; here the triple's stars are fitted
+as articulated models to the *same* markers (``skeleton.star_fit``: same markers, same
+number of parameters, so the residual sums of squares compare directly). Where the star
+around a neighbour fits better than b's by more than ``STAR_MARGIN`` times the residual
+variance per residual (the junction step's margin, ``skeleton.junctions``), c is re-hung
+from a (and symmetrically). An alternative is only fitted where its new pair is a plausible
+joint at all (cost at most ``PLAUSIBLE`` x the floor): otherwise the MST's choice stands
+without a fit. One move per round, the most decisive first, until none is left (at most
+``MAX_MOVES``); fits are cached per triple and hub (the fitted sum of squares does not
+depend on the start).
+
+Seed 4043 of benchmarks/bench_skeleton.py (1 mm): siblings 2 (2 markers) and 4 (3 markers)
+hang from 1 with joints 116 mm apart; the tree hung 2 from 4 (cost 1.26x the floor against
+1.03x for the true 1-2, chosen in the junction step); the star around 1 fits 289x the
+residual variance better than the star around 4.
+Conventions: docs/conventions.md [arrays], [units].
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from skeleton.junctions import STAR_MARGIN
+from skeleton.star_fit import star_misfit
+from skeleton.topology import tree_from_edges
+
+__all__ = ["relink_by_stars", "PLAUSIBLE", "MAX_MOVES", "VAR_FLOOR_M2"]
+
+PLAUSIBLE = 3.0       # an alternative pair is fitted when its cost is <= this x the floor
+MAX_MOVES = 10        # re-links at most
+VAR_FLOOR_M2 = 1e-10  # residual variance floor (10 um RMS): noise-free fits reach ~1e-20,
+                      # and a margin in units of that would count the solver's convergence
+
+
+def relink_by_stars(traj: np.ndarray, members, parents, joint_starts, cost: np.ndarray,
+                    floor_m: float, margin: float = STAR_MARGIN, log=None):
+    """``parents`` (S,) a rooted tree (-1 at the root); ``joint_starts(parents)`` -> dict
+    child -> (T, 3) world start of the joint with its parent (the solver's joint fits);
+    ``cost`` (S, S) pair costs and ``floor_m`` what a true joint scores (``PLAUSIBLE``).
+    Returns the new parents (the same root where it stays in the tree's centre: the tree is
+    re-rooted by ``tree_from_edges``) and the moves made: (segment, old neighbour, new
+    neighbour, margin)."""
+    parents = np.asarray(parents, np.int64)
+    S = parents.size
+    if cost.shape != (S, S):
+        raise ValueError(f"cost.shape={cost.shape}, expected ({S}, {S})")
+    say = log or (lambda msg: None)
+    cache: dict = {}
+    moves = []
+    if not np.isfinite(margin):
+        return parents, moves
+
+    def fit(tri, hub, starts):
+        key = (tri, hub)
+        if key not in cache:
+            cache[key] = star_misfit(traj, members, set(tri), hub, starts)
+        return cache[key]
+
+    for _ in range(MAX_MOVES):
+        starts = joint_starts(parents)
+        edges = {frozenset((int(s), int(parents[s]))) for s in range(S) if parents[s] >= 0}
+
+        def J(a, b):
+            return starts[b] if parents[b] == a else starts[a]
+
+        nb = {s: sorted(v for e in edges if s in e for v in e if v != s) for s in range(S)}
+        best = None
+        for b in range(S):
+            for i, a in enumerate(nb[b]):
+                for c in nb[b][i + 1:]:
+                    tri = tuple(sorted((a, b, c)))
+                    for hub, moved, kept in ((a, c, b), (c, a, b)):
+                        # alternative: `moved` hangs from `hub` instead of from b
+                        if not cost[hub, moved] <= PLAUSIBLE * floor_m:
+                            continue
+                        cur = fit(tri, b, {a: J(a, b), c: J(b, c)})
+                        alt = fit(tri, hub, {kept: J(hub, b), moved: J(b, moved)})
+                        if not (cur.ok and alt.ok):
+                            continue
+                        var = max(min(cur.ssq_m2, alt.ssq_m2) / cur.n_res, VAR_FLOOR_M2)
+                        m = (cur.ssq_m2 - alt.ssq_m2) / var
+                        if m > margin and (best is None or m > best[0]):
+                            best = (m, moved, b, hub)
+        if best is None:
+            break
+        m, moved, old, new = best
+        edges = (edges - {frozenset((moved, old))}) | {frozenset((moved, new))}
+        parents = tree_from_edges(S, sorted(tuple(sorted(e)) for e in edges)).parents
+        moves.append((int(moved), int(old), int(new), float(m)))
+        say(f"star re-link: segment {moved} from {old} to {new} (its star fits "
+            f"{m:.0f}x the residual variance better)")
+    return parents, moves
