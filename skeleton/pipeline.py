@@ -7,7 +7,9 @@ segment pair (noise-normalised joint-fit residual; the closed-form costs in one 
 process per CPU) - both on 6 Hz low-passed data when the data is noisy,
 ``skeleton.topology`` (MST; pairs whose fit is a hinge within the noise are taken first),
 ``skeleton.junctions`` (segments meeting at one point re-linked around their hub, sure hinge
-pairs kept; found on the tree's joints as the final fit makes them), root = tree centre,
+pairs kept; found on the tree's joints as the final fit makes them), ``skeleton.relink``
+(two tree edges sharing a segment: the triple's three stars fitted to its markers as one
+articulated model each, re-linked where a neighbour's fits decisively better), root = tree centre,
 then a refined joint fit per tree edge (``_completed_fits``: a joint between two frameless
 segments fitted in one's frame completed by a neighbour's joint; ``_world_centre``: a centre
 its reference frame carries too noisily placed by the world-frame fit). Segments without
@@ -634,6 +636,11 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
             lambda par: {s: f.world for s, f in tree_joints(par).items()}, cost, floor, log=say)
         if moves:
             top = tree_from_edges(S, [(s, int(parents[s])) for s in range(S) if parents[s] >= 0])
+            # a junction keeps the members still linked to its hub
+            linked = [tuple(m for m in jn.segments if m == jn.hub or top.parents[m] == jn.hub
+                            or top.parents[jn.hub] == m) for jn in junctions]
+            junctions = [jn._replace(segments=k) for jn, k in zip(junctions, linked)
+                         if len(k) >= 3]
     final = tree_joints(top.parents)
     # each junction's spread over its final joints (a centre the group was found around may
     # lie off the junction: skeleton.junctions' fixed-point test; a world fit is re-fitted

@@ -25,15 +25,13 @@ from __future__ import annotations
 import numpy as np
 
 from skeleton.junctions import STAR_MARGIN
-from skeleton.star_fit import star_misfit
+from skeleton.star_fit import VAR_FLOOR_M2, star_misfit
 from skeleton.topology import tree_from_edges
 
-__all__ = ["relink_by_stars", "PLAUSIBLE", "MAX_MOVES", "VAR_FLOOR_M2"]
+__all__ = ["relink_by_stars", "PLAUSIBLE", "MAX_MOVES"]
 
 PLAUSIBLE = 3.0       # an alternative pair is fitted when its cost is <= this x the floor
 MAX_MOVES = 10        # re-links at most
-VAR_FLOOR_M2 = 1e-10  # residual variance floor (10 um RMS): noise-free fits reach ~1e-20,
-                      # and a margin in units of that would count the solver's convergence
 
 
 def relink_by_stars(traj: np.ndarray, members, parents, joint_starts, cost: np.ndarray,

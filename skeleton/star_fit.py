@@ -26,9 +26,12 @@ from typing import NamedTuple
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-__all__ = ["StarFit", "star_misfit", "STAR_FRAMES"]
+__all__ = ["StarFit", "star_misfit", "STAR_FRAMES", "VAR_FLOOR_M2"]
 
 STAR_FRAMES = 150   # frames sampled (evenly) for the fit
+VAR_FLOOR_M2 = 1e-10  # residual variance floor (10 um RMS) for margins in units of it: noise-
+                      # free fits reach ~1e-20, and stars of exactly coincident joints are
+                      # equivalent: a margin over that would count the solver's convergence
 MAX_ITER = 50       # Levenberg-Marquardt iterations ...
 TOL = 1e-6          # ... until the sum of squares falls by less than this fraction, or by
 STOP_VAR = 0.1      # less than this x the residual variance (hub margins are 200x that)
