@@ -96,3 +96,10 @@ def test_siblings_far_apart_hung_from_each_other_by_the_tree():
     assert fig.parents[2] == fig.parents[4] == 1
     noisy = mo.markers + np.random.default_rng(43).normal(0, 1e-3, mo.markers.shape)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+    import skeleton.pipeline as pipeline
+    relink = pipeline.relink_by_stars
+    try:
+        pipeline.relink_by_stars = lambda traj, members, parents, *a, **k: (parents, [])
+        assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+    finally:
+        pipeline.relink_by_stars = relink
