@@ -1,7 +1,7 @@
 """Skeleton solver on the real marker recordings of ../shared/data/c3d: the thesis' measure for
 captured data (mean deviation between measured and fitted markers after the fit back), with
 the star-likelihood rules (skeleton.junctions' star margin, skeleton.relink) and without them
-in the same run, and each tree as marker names per segment.
+(``star_margin=inf``) in the same run, and each tree as marker names per segment.
 
 Usage: python benchmarks/bench_real_skeleton.py [names=arm_4-2-3_markers_120fps,cmu_85_02,...]
 (file stems under ../shared/data/c3d; default: every full-body recording and the arm).
@@ -20,8 +20,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import skeleton.junctions as junctions  # noqa: E402
-import skeleton.pipeline as pipeline  # noqa: E402
 from reconstruct.marker_files import read_markers  # noqa: E402
 from skeleton.app import run_skeleton  # noqa: E402
 
@@ -30,20 +28,10 @@ DEFAULT = ("arm_4-2-3_markers_120fps,cmu_85_02,cmu_85_12,ktk_tennis_serve_optitr
            "ktk_tennis_serve_with_gaps,ktk_basket_sprint")
 
 
-def _without_stars(traj, members, parents, *args, **kwargs):
-    return parents, []
-
-
 def solve(path: Path, stars: bool):
-    real_relink, real_margin = pipeline.relink_by_stars, junctions.STAR_MARGIN
-    if not stars:
-        pipeline.relink_by_stars, junctions.STAR_MARGIN = _without_stars, np.inf
-    try:
-        t0 = time.perf_counter()
-        run = run_skeleton(read_markers(path), rng=0)
-        return run, time.perf_counter() - t0
-    finally:
-        pipeline.relink_by_stars, junctions.STAR_MARGIN = real_relink, real_margin
+    t0 = time.perf_counter()
+    run = run_skeleton(read_markers(path), rng=0, star_margin=None if stars else np.inf)
+    return run, time.perf_counter() - t0
 
 
 def tree(run) -> str:

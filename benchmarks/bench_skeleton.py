@@ -23,7 +23,9 @@ on 63031; 66000-69000 first run on fa5cce5; 70000-73000 first run at stop 20 on 
 whose rule 5e9d3d3 was chosen on 70012; 74000 and 75000 first run on 5e9d3d3, and 74049 then
 showed the anchored-pair search of stop 20 (f405241); 76000 and 77000 first run on f405241;
 78000-85000 first run at stop 21 on 74881a7, and 85038 then showed the hinge evidence of
-d6009f7; 86000-89000 first run on d6009f7; 90000+ untouched)
+d6009f7; 86000-89000 first run on d6009f7; at stop 22, 90000-92000 first run on stop 21's code, and
+the star margin (skeleton.junctions.STAR_MARGIN) chosen on their true sibling triples;
+93000+ first run on the star fits' code; 97000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
@@ -35,7 +37,7 @@ the same run: edges may differ only inside a group of coincident joints), report
 perpendicular to the axis) with its p90, p99, maximum and the joints more than 10 mm off
 (a median hides a few joints far off), and seconds per figure. Then the thesis' largest case
 (31 markers / 13 segments / 1500 frames) against its ~70 s, and against the solver in one
-process (``workers=1``) in the same run.
+process (``workers=1``) and without the star fits (``star_margin=inf``) in the same run.
 """
 from __future__ import annotations
 
@@ -50,6 +52,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hw_sim.articulated import animate, random_tree  # noqa: E402
+from skeleton.junctions import STAR_MARGIN  # noqa: E402
 from skeleton.pipeline import solve_skeleton  # noqa: E402
 from tests.skeleton._figures import (largest_case, min_sibling_joint_distance,  # noqa: E402
                                      segment_map, solver_joint_errors, topology_equivalent)
@@ -60,10 +63,10 @@ EQUIV_TOL_FACTOR = 3.0
 FAR_JOINT_M = 0.010   # joints reported as far off (count)
 
 
-def run(fig, mo, noise_m, seed, workers=None):
+def run(fig, mo, noise_m, seed, workers=None, star_margin=STAR_MARGIN):
     tr = mo.markers + np.random.default_rng(seed).normal(0, noise_m, mo.markers.shape)
     t0 = time.perf_counter()
-    res = solve_skeleton(tr, mo.rate_hz, rng=0, workers=workers)
+    res = solve_skeleton(tr, mo.rate_hz, rng=0, workers=workers, star_margin=star_margin)
     dt = time.perf_counter() - t0
     segmap = segment_map(fig, res.labels)
     if segmap is None or res.n_segments != fig.n_segments:
@@ -134,23 +137,28 @@ def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1"):
     fig, mo = largest_case()
     for noise in (0.0, 1e-3):
         # the solver as it runs (pair costs in one process per CPU), then with one process
-        # (workers=1), the baseline of the same run; alternated, best of 3 each
-        best = {None: np.inf, 1: np.inf}
-        cpu = {None: 0.0, 1: 0.0}
+        # (workers=1), then without the star fits (star_margin=inf: the solver before
+        # skeleton.star_fit), the baselines of the same run; alternated, best of 3 each
+        modes = {"as run": {}, "workers=1": {"workers": 1},
+                 "no star fits": {"star_margin": np.inf}}
+        best = {m: np.inf for m in modes}
+        cpu = {m: 0.0 for m in modes}
         for _ in range(3):
-            for w in best:
+            for m, kw in modes.items():
                 c0 = _cpu()
-                r = run(fig, mo, noise, 0, workers=w)
-                cpu[w] += (_cpu() - c0) / 3
-                best[w] = min(best[w], r[2])
-                if w is None:
+                r = run(fig, mo, noise, 0, **kw)
+                cpu[m] += (_cpu() - c0) / 3
+                best[m] = min(best[m], r[2])
+                if m == "as run":
                     good, e = r[0], r[1]
-        dt = best[None]
+        dt = best["as run"]
         print(f"largest case 31 markers/13 segments/1500 frames, noise {noise * 1e3:.0f} mm: "
-              f"{dt:.2f} s wall (best of 3; {cpu[None]:.2f} s CPU with its workers; "
+              f"{dt:.2f} s wall (best of 3; {cpu['as run']:.2f} s CPU with its workers; "
               f"{len(os.sched_getaffinity(0))} CPUs; load {os.getloadavg()[0]:.1f}) vs thesis "
               f"{THESIS_LARGEST_S:.0f} s (ratio {dt / THESIS_LARGEST_S:.3f}); one process "
-              f"(workers=1) {best[1]:.2f} s (ratio {dt / best[1]:.2f}); topology {good}; "
+              f"(workers=1) {best['workers=1']:.2f} s (ratio {dt / best['workers=1']:.2f}); "
+              f"without the star fits {best['no star fits']:.2f} s (ratio "
+              f"{dt / best['no star fits']:.2f}); topology {good}; "
               f"median joint error {np.median(e) * 1e3 if e else float('nan'):.3f} mm")
 
 

@@ -49,10 +49,11 @@ class SkeletonRun:
 
 def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None,
                  merge: bool = True, min_frames: int = 10, ik: bool = True,
-                 workers: int | None = None) -> SkeletonRun:
+                 workers: int | None = None, star_margin: float | None = None) -> SkeletonRun:
     """``markers`` is a ``reconstruct.marker_files.MarkerData`` (or anything with
     ``positions`` (T, M, 3) m, ``labels`` and ``rate_hz``). ``workers``: processes for the
-    pair costs (``skeleton.pipeline.solve_skeleton``; None: every CPU)."""
+    pair costs; ``star_margin``: the star fits' margin, inf to turn them off (both
+    ``skeleton.pipeline.solve_skeleton``; None: its defaults)."""
     say = progress or (lambda msg: None)
     X = np.asarray(markers.positions, np.float64)
     labels = tuple(markers.labels)
@@ -65,8 +66,9 @@ def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None
             f"({len(sets.dropped)} dropped as shorter than {min_frames} frames)")
     if X.shape[1] < 3:
         raise ValueError(f"{X.shape[1]} markers after merging, need at least 3")
+    extra = {} if star_margin is None else {"star_margin": star_margin}
     res = solve_skeleton(X, markers.rate_hz, n_segments=n_segments, rng=rng, progress=say,
-                         workers=workers)
+                         workers=workers, **extra)
     say("rigid skeleton")
     rigid = build_rigid_skeleton(X, res, marker_names=labels)
     say(f"fit back: {X.shape[0]} frames")

@@ -230,7 +230,8 @@ def _star(grp: set, hub: int, keep, cost: np.ndarray) -> set:
 def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.ndarray,
                       tol_m: float, max_cost: float, axes: dict | None = None,
                       recost=None, is_hinge=None, record: list | None = None,
-                      keep: np.ndarray | None = None, floor_m: float = 0.0) -> np.ndarray:
+                      keep: np.ndarray | None = None, floor_m: float = 0.0,
+                      star_margin: float | None = None) -> np.ndarray:
     """Tree edges (S-1, 2) with every junction group re-linked as a star around its hub
     (see the module docstring). A member whose star would use an edge costing more than
     ``max_cost`` is no candidate hub (a group without candidates is split, see the module
@@ -245,7 +246,9 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
     ``keep`` (S, S) bool, when given: pairs the re-link keeps linked (the tree's sure hinge
     pairs); a member kept to another is hung from it instead of the hub. ``floor_m`` > 0:
     what a true joint's cost scores on ``traj``; groups are then also found by the
-    fixed-point test of ``junction_groups``."""
+    fixed-point test of ``junction_groups``. ``star_margin``: the star fits' margin (default
+    ``STAR_MARGIN``; inf: no star fits, the prior decides)."""
+    margin = STAR_MARGIN if star_margin is None else float(star_margin)
     edges = {frozenset(int(v) for v in e) for e in edges}
     cost = np.array(cost, float)
 
@@ -266,13 +269,13 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
         if is_hinge is not None:
             n_hinge = [sum(bool(is_hinge(h, m)) for m in group if m != h) for h in hubs]
             hubs = [h for h, n in zip(hubs, n_hinge) if n == max(n_hinge)]
-        if len(hubs) > 1 and np.isfinite(STAR_MARGIN):
+        if len(hubs) > 1 and np.isfinite(margin):
             fits = [star_misfit(traj, members, group, h, c) for h in hubs]
             ssq = np.array([f.ssq_m2 if f.ok else np.inf for f in fits])
             order = np.argsort(ssq)
             if np.isfinite(ssq[order[1]]) and fits[order[0]].n_res > 0:
                 var = max(ssq[order[0]] / fits[order[0]].n_res, VAR_FLOOR_M2)
-                if ssq[order[1]] - ssq[order[0]] > STAR_MARGIN * var:
+                if ssq[order[1]] - ssq[order[0]] > margin * var:
                     return hubs[int(order[0])]
         spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
                                for m in group if m != h) for h in hubs])

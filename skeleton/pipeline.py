@@ -37,7 +37,8 @@ from threadpoolctl import threadpool_limits
 from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_cost
 from skeleton.rigid import kabsch
 from skeleton.segments import distance_sd, noise_sd, segment_markers
-from skeleton.junctions import Junction, joint_gap, joint_spread, resolve_junctions
+from skeleton.junctions import (STAR_MARGIN, Junction, joint_gap, joint_spread,
+                                resolve_junctions)
 from skeleton.relink import relink_by_stars
 from skeleton.topology import skeleton_tree, tree_from_edges
 
@@ -478,9 +479,15 @@ def _pair_costs(data, members, pairs, min_q, workers: int | None) -> list:
 
 
 def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, rng=None,
-                   progress=None, workers: int | None = None) -> SkeletonResult:
+                   progress=None, workers: int | None = None,
+                   star_margin: float = STAR_MARGIN) -> SkeletonResult:
     """``workers``: processes for the pair costs (``_pair_costs``; None: every CPU this
-    process may run on, 1: none forked)."""
+    process may run on, 1: none forked). ``star_margin``: how much better (x the residual
+    variance) a star of segments must fit their markers to decide a junction's hub or
+    re-link a tree triple (``skeleton.star_fit``); inf turns both off (the solver as it was
+    before them: the benchmarks' baseline)."""
+    if not star_margin > 0:
+        raise ValueError(f"star_margin={star_margin!r}, expected > 0 (inf: off)")
     traj = np.asarray(trajectories, np.float64)
     if traj.ndim != 3 or traj.shape[2] != 3:
         raise ValueError(f"trajectories.shape={traj.shape}, expected (T, M, 3)")
@@ -626,14 +633,15 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
                                   recost=lambda a, b: joint_cost(smooth, members[a], members[b],
                                                                  min_quality=min_q),
                                   is_hinge=is_hinge, record=junctions,
-                                  keep=sure, floor_m=floor)
+                                  keep=sure, floor_m=floor, star_margin=star_margin)
         top = tree_from_edges(S, edges)
     # Two tree edges sharing a segment: the triple's three stars fitted to its markers; a
     # neighbour's star that fits decisively better re-links it (skeleton.relink)
     if S > 2:
         parents, moves = relink_by_stars(
             fit_data, members, top.parents,
-            lambda par: {s: f.world for s, f in tree_joints(par).items()}, cost, floor, log=say)
+            lambda par: {s: f.world for s, f in tree_joints(par).items()}, cost, floor,
+            margin=star_margin, log=say)
         if moves:
             top = tree_from_edges(S, [(s, int(parents[s])) for s in range(S) if parents[s] >= 0])
             # a junction keeps the members still linked to its hub

@@ -89,17 +89,12 @@ def test_implausible_pairs_are_not_fitted():
 def test_siblings_far_apart_hung_from_each_other_by_the_tree():
     """Seed 4043 of benchmarks/bench_skeleton.py (1 mm noise; seen as a failure at stop 22):
     siblings 2 (2 markers) and 4 (3 markers) hang from 1 with joints 116 mm apart; the tree
-    hung 2 from 4. The star around 1 fits the triple 289x its residual variance better."""
+    hung 2 from 4 (as it does without the star fits, star_margin = inf). The star around 1
+    fits the triple 289-564x its residual variance better."""
     g = np.random.default_rng(4043)
     fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
     mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
     assert fig.parents[2] == fig.parents[4] == 1
     noisy = mo.markers + np.random.default_rng(43).normal(0, 1e-3, mo.markers.shape)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
-    import skeleton.pipeline as pipeline
-    relink = pipeline.relink_by_stars
-    try:
-        pipeline.relink_by_stars = lambda traj, members, parents, *a, **k: (parents, [])
-        assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
-    finally:
-        pipeline.relink_by_stars = relink
+    assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, star_margin=np.inf))
