@@ -14,9 +14,14 @@ carries the parent's joint about the sibling's: its markers miss by about the jo
 the sibling's rotation in every frame, which the model cannot absorb (moving the sibling
 moves its own markers with the lever arm), so siblings a fraction of a mm apart separate
 at 1 mm marker noise over a few hundred frames, where the pairwise costs do not (see
-``skeleton.junctions``). The solve is sparse least squares (SciPy ``least_squares``, trust
-region, Jacobian sparsity by frame) from a closed-form start: each segment's rotations by
-Kabsch of its markers and the junction centre (a frame even for two markers).
+``skeleton.junctions``). The solve is Levenberg-Marquardt with the analytic Jacobian, the
+normal equations reduced to the global parameters by the Schur complement of the per-frame
+blocks (bundle adjustment's structure), the gauge (each segment's local frame) fixed by
+holding the first frame's pose parameters at their start. It starts in closed form: each
+segment's rotations by Kabsch of its markers and its joint's start point (a frame even for
+two markers). Written here rather than with SciPy's ``least_squares`` (finite-difference
+Jacobian with its sparsity, lsmr): that took 0.6-1.1 s per star on 3-segment groups, this
+takes 0.04-0.2 s, which is what lets the solver test every tree triple (``skeleton.relink``).
 Conventions: docs/conventions.md [arrays], [units], [rotations].
 """
 from __future__ import annotations
@@ -76,6 +81,12 @@ def _frames(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def star_misfit(traj: np.ndarray, members, group, hub: int, centre,
                 n_frames: int = STAR_FRAMES) -> StarFit:
+    """The star of ``group`` (segment indices) around ``hub`` fitted to the group's markers
+    (``members[s]``: marker indices of segment s) on ``n_frames`` frames sampled evenly
+    among those where every marker and start point is seen. ``centre``: the junction point
+    (T, 3), the start of every joint; or a mapping member -> (T, 3), the start of that
+    member's joint with the hub, for every member but the hub. Fewer than 10 such frames:
+    a StarFit that is not ok and says so."""
     # small dense products: BLAS threads only contend (1.0 s -> 0.13 s for one fit on a
     # loaded 2-core machine)
     with threadpool_limits(limits=1, user_api="blas"):
@@ -83,11 +94,6 @@ def star_misfit(traj: np.ndarray, members, group, hub: int, centre,
 
 
 def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
-    """The star of ``group`` (segment indices) around ``hub`` fitted to the group's markers
-    (``members[s]``: marker indices of segment s) on ``n_frames`` frames sampled evenly
-    among those where every marker and start point is seen. ``centre``: the junction point
-    (T, 3), the start of every joint; or a mapping member -> (T, 3), the start of that
-    member's joint with the hub, for every member but the hub."""
     traj = np.asarray(traj, np.float64)
     others = [int(s) for s in sorted(group) if s != hub]
     if int(hub) not in set(int(s) for s in group) or not others:
@@ -143,20 +149,20 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
     y = y0.copy()
     js = j0.copy()
     zs = [z.copy() for z in zl]
-    # Jacobian structure: per marker, its 3x3 blocks (column of the block's first parameter)
-    fcol = np.arange(F) * n_fr
-    blocks = []                              # (marker, kind, k, column per frame (F,))
+    n_g = n_par - G0
+    # Jacobian structure: per marker, its 3x3 blocks and their first column in a frame's
+    # dense row block (the frame's own parameters, then the global ones at n_fr + ...)
+    blocks = []                              # (marker, kind, k, column)
     for i in range(n[0]):
-        blocks += [(i, "wh", 0, fcol), (i, "t", 0, fcol + 3),
-                   (i, "y", 0, np.full(F, G0 + 3 * i))]
+        blocks += [(i, "wh", 0, 0), (i, "t", 0, 3), (i, "y", 0, n_fr + 3 * i)]
     i = n[0]
     for k in range(K):
         for q in range(n[k + 1]):
-            blocks += [(i, "whj", k, fcol), (i, "t", k, fcol + 3),
-                       (i, "j", k, np.full(F, G0 + n_y + 3 * k)),
-                       (i, "wk", (k, q), fcol + 6 + 3 * k),
-                       (i, "z", (k, q), np.full(F, off_z[k] + 3 * q))]
+            blocks += [(i, "whj", k, 0), (i, "t", k, 3), (i, "j", k, n_fr + n_y + 3 * k),
+                       (i, "wk", (k, q), 6 + 3 * k),
+                       (i, "z", (k, q), n_fr + off_z[k] - G0 + 3 * q)]
             i += 1
+
     def skew(v):                             # (F, 3) -> (F, 3, 3), skew(v) u = v x u
         S = np.zeros(v.shape[:-1] + (3, 3))
         S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
@@ -170,13 +176,11 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
             out.append(np.einsum("fij,nj->fni", Rs[k + 1], zs[k]) + Jk[:, None])
         return np.concatenate(out, axis=1)
 
-    n_g = n_par - G0
-
     def jacobian():
         """(F, 3N, n_fr + n_g) dense per-frame Jacobian: the frame's own parameters, then
         the global ones."""
         Jd = np.zeros((F, 3 * N, n_fr + n_g))
-        for m, kind, k, c in blocks:
+        for m, kind, k, col in blocks:
             if kind == "wh":
                 v = -skew(np.einsum("fij,j->fi", Rs[0], y[m]))
             elif kind == "t":
@@ -191,8 +195,6 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
                 v = -skew(np.einsum("fij,j->fi", Rs[k[0] + 1], zs[k[0]][k[1]]))
             else:
                 v = Rs[k[0] + 1]
-            col = int(c[0]) if c[0] >= G0 else int(c[0])   # frame 0's column
-            col = n_fr + col - G0 if col >= G0 else col
             Jd[:, 3 * m:3 * m + 3, col:col + 3] = v
         # gauge: the hub's local frame (6) and each member's (3) are free; the first
         # frame's parameters (as many) stay at their start, which fixes them
