@@ -37,6 +37,11 @@ STAR_FRAMES = 150   # frames sampled (evenly) for the fit
 VAR_FLOOR_M2 = 1e-10  # residual variance floor (10 um RMS) for margins in units of it: noise-
                       # free fits reach ~1e-20, and stars of exactly coincident joints are
                       # equivalent: a margin over that would count the solver's convergence
+JOINT_PULL_MM = 20.0  # each joint is pulled towards its start: 20 mm off adds 1 mm^2 (the
+                      # residual variance per residual is ~0.05 mm^2 at 1 mm noise). Without
+                      # it a hinge's centre, free along its axis, runs off with the noise and
+                      # the fit crawls after it for hundreds of iterations (seed 97022's true
+                      # star: unconverged after 400; with it: 7-12)
 MAX_ITER = 50       # Levenberg-Marquardt iterations ...
 TOL = 1e-6          # ... until the sum of squares falls by less than this fraction, or by
 STOP_VAR = 0.1      # less than this x the residual variance (hub margins are 200x that)
@@ -213,7 +218,13 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
         return new
 
     r = (model() - Xs).reshape(F, 3 * N)
-    ssq = float(np.sum(r * r))
+    jcol = slice(n_y, n_y + 3 * K)           # the joints' columns among the global ones
+
+    def prior(js_):                          # the joints' pull towards their starts (mm^2)
+        d = (js_ - j0) / JOINT_PULL_MM
+        return float(np.sum(d * d))
+
+    ssq = float(np.sum(r * r)) + prior(js)
     lam = None
     eye_f, eye_g = np.eye(n_fr), np.eye(n_g)
     it = 0
@@ -225,8 +236,10 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
         W = JfT @ Jg
         Jg2 = Jg.reshape(-1, n_g)
         V = Jg2.T @ Jg2
+        V[jcol, jcol] += np.eye(3 * K) / JOINT_PULL_MM ** 2
         ef = (JfT @ r[:, :, None])[:, :, 0]
         eg = Jg2.T @ r.ravel()
+        eg[jcol] += (js - j0).ravel() / JOINT_PULL_MM ** 2
         scale = float(np.mean(np.concatenate([np.diagonal(U, axis1=1, axis2=2).ravel(),
                                               np.diag(V)])))
         if lam is None:
@@ -253,16 +266,17 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
             saved = (Rs, t, y, js, zs)
             Rs, t, y, js, zs = apply(dx)
             r_new = (model() - Xs).reshape(F, 3 * N)
-            s_new = float(np.sum(r_new * r_new))
+            s_new = float(np.sum(r_new * r_new)) + prior(js)
             if s_new < ssq:
                 break
             Rs, t, y, js, zs = saved
             lam *= 10.0
             if lam > 1e8:
-                return StarFit(True, "", ssq * 1e-6, r.size, n_par, it)
+                return StarFit(True, "", float(np.sum(r * r)) * 1e-6, r.size, n_par, it)
         done = ssq - s_new < max(TOL * ssq, STOP_VAR * s_new / r_new.size)
         r, ssq = r_new, s_new
         lam = max(lam / 3.0, 1e-9)
         if done:
             break
-    return StarFit(True, "", ssq * 1e-6, r.size, n_par, it)
+    # the data's sum of squares (the pull only guides the search along near-free directions)
+    return StarFit(True, "", float(np.sum(r * r)) * 1e-6, r.size, n_par, it)
