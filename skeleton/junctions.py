@@ -24,12 +24,14 @@ parameters), and a hub whose star's residual sum of squares is lower than every 
 candidate's by more than ``STAR_MARGIN`` (200) times its residual variance per residual is
 chosen without the prior. The threshold was set on the 188 true sibling pairs within 10 mm
 of each other in seed sets 90000-92000 of benchmarks/bench_skeleton.py (1 mm noise,
-low-passed, the parent and the two siblings alone, the true junction point): the parent's
-star fitted best in 167; all 118 margins above 200x were the parent's (gaps 1.2-9.9 mm);
-below it, noise alone reached 122x for a wrong hub (gap 0.8 mm), and a hinge whose axis
-passes near the sibling's joint made a near-equivalent wrong star win by 179x (90017). By
-gap: < 1 mm 11 of 23 best (none above 200x), 1-3 mm 35 of 42 (11 above), >= 3 mm 121 of
-123 (107 above). A hub whose
+low-passed, the parent and the two siblings alone, the true junction point), with the star
+fit before the joints' pull of ``skeleton.star_fit`` and again with it: the parent's star
+fitted best in 167 both times, and all 118 margins above 200x were the parent's (gaps
+1.2-9.9 mm; with the pull 1.3-9.9). The largest margin of a wrong hub was 118x with the pull
+(179x without): 90017, where a hinge's axis passes near the sibling's joint, so the wrong
+star is nearly equivalent; among siblings under 1 mm apart, 24x. By gap, with the pull:
+< 1 mm 11 of 23 best (none above 200x), 1-3 mm 36 of 42 (11 above), >= 3 mm 120 of 123
+(107 above). A hub whose
 star would use an edge costing more than ``max_cost`` is not considered. A group that no
 member can join as a hub chained distinct junctions (each joint within the tolerance of the
 next): it is split at half the tolerance, up to ``SPLIT_DEPTH`` times, and each tighter group

@@ -17,7 +17,10 @@ at 1 mm marker noise over a few hundred frames, where the pairwise costs do not 
 ``skeleton.junctions``). The solve is Levenberg-Marquardt with the analytic Jacobian, the
 normal equations reduced to the global parameters by the Schur complement of the per-frame
 blocks (bundle adjustment's structure), the gauge (each segment's local frame) fixed by
-holding the first frame's pose parameters at their start. It starts in closed form: each
+holding the first frame's pose parameters at their start, and each joint pulled weakly
+towards its start (``JOINT_PULL_MM``: a hinge's centre is free along its axis, and without
+the pull the fit crawls after the noise along it for hundreds of iterations, so stars were
+compared part-converged; the sum of squares returned is the data's). It starts in closed form: each
 segment's rotations by Kabsch of its markers and its joint's start point (a frame even for
 two markers). Written here rather than with SciPy's ``least_squares`` (finite-difference
 Jacobian with its sparsity, lsmr): that took 0.6-1.1 s per star on 3-segment groups, this
