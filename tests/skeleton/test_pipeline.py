@@ -114,7 +114,10 @@ def test_pair_costs_in_processes_match_the_serial_loop(monkeypatch):
     what the solver builds on them: the same tree, the same joint centres. Up to the last
     digits only: the serial loop alone gives one of these costs as 0.009344614768427 or
     0.009344614769724568 depending on which modules were imported before it (memory
-    layout), so 1e-9 relative is the test's resolution, not a tolerance on the method."""
+    layout), and in a clean clone at stop 22 (its import of skeleton.relink) 0.009344614742527
+    in one process against 0.009344614757504 in the workers (1.6e-9 relative; the same pair,
+    3-10, whose cost a multi-start search sets), so 1e-8 relative is the test's resolution,
+    not a tolerance on the method."""
     g = np.random.default_rng(21)
     fig = random_tree(12, (2, 4), rng=g)
     mo = animate(fig, 400, rng=g, rom_deg=60.0)
@@ -132,7 +135,7 @@ def test_pair_costs_in_processes_match_the_serial_loop(monkeypatch):
     two = solve_skeleton(noisy, mo.rate_hz, rng=0, workers=2)
     assert pools == [2]
     assert one.n_segments == 12
-    np.testing.assert_allclose(one.cost, two.cost, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(one.cost, two.cost, rtol=1e-8, atol=0)
     np.testing.assert_array_equal(one.parents, two.parents)
     np.testing.assert_allclose(one.joint_centres, two.joint_centres, rtol=0, atol=1e-9)
 
