@@ -209,9 +209,8 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
         Jd[0, :, :n_fr] = 0.0
         return Jd
 
-    def apply(dx, sign=1.0):
-        nonlocal t, y, js
-        d = sign * dx
+    def apply(d):
+        """the state after the step ``d`` (rotations by left increments)"""
         p = d[:G0].reshape(F, n_fr)
         new_R = [_rodrigues(p[:, :3]) @ Rs[0]] + [
             _rodrigues(p[:, 6 + 3 * k:9 + 3 * k]) @ Rs[k + 1] for k in range(K)]
