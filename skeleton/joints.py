@@ -24,6 +24,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from skeleton.rigid import kabsch
+from skeleton.world_lm import world_lm
 
 __all__ = ["JointFit", "fit_joint", "HINGE_RATIO"]
 
@@ -330,67 +331,13 @@ LM_RTOL = 1e-7           # stop: relative decrease of the sum of squares
 LM_ATOL_M = 1e-10        # stop: rms residual
 
 
-def _inv3_sym(A: np.ndarray) -> np.ndarray:
-    """Inverse of symmetric 3x3 matrices (..., 3, 3) by cofactors (many small matrices:
-    several times faster than a batched LAPACK call)."""
-    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
-    d, e, f = A[..., 1, 1], A[..., 1, 2], A[..., 2, 2]
-    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    out = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], -1)
-    return (out / det[..., None]).reshape(A.shape)
-
-
 def _world_lm(X: np.ndarray, c: np.ndarray, r: np.ndarray, iters: int = COST_ITERS):
     """Levenberg-Marquardt on the thesis' world-frame cost ``sum (|x_fn - c_f| - r_n)^2``
     over per-frame centres ``c`` (F, 3) and constant distances ``r`` (N,), with the analytic
-    Jacobian and the per-frame 3x3 blocks eliminated (Schur complement on ``r``).
-    Batched: X (B, F, N, 3), c (B, F, 3), r (B, N) solve B problems at once."""
-    single = X.ndim == 3
-    if single:
-        X, c, r = X[None], c[None], r[None]
-    X, c, r = np.asarray(X, float), np.array(c, float), np.array(r, float)
-    B, F, N = X.shape[:3]
-
-    def resid(c, r):
-        D = X - c[:, :, None]
-        d = np.sqrt(np.einsum("bfni,bfni->bfn", D, D))
-        return D, d, d - r[:, None]
-
-    D, d, e = resid(c, r)
-    ssr = (e**2).sum((1, 2))
-    lam = np.full(B, 1e-3)
-    live = np.ones(B, bool)
-    eye = np.eye(3)
-    for _ in range(iters):
-        u = D / np.maximum(d, 1e-12)[..., None]                   # (B, F, N, 3); J_c = -u
-        ut = np.swapaxes(u, 2, 3)                                # (B, F, 3, N)
-        A = ut @ u                                               # (B, F, 3, 3)
-        gc = -(ut @ e[..., None])[..., 0]                        # J_c^T e (B, F, 3)
-        gr = -e.sum(1)                                           # J_r^T e (B, N)
-        Ad = A + lam[:, None, None, None] * (A * eye).sum(3)[..., None] * eye + 1e-12 * eye
-        Ainv = _inv3_sym(Ad)
-        AiB = Ainv @ ut                                          # (B, F, 3, N)
-        Sm = ((1 + lam) * F)[:, None, None] * np.eye(N) - (u @ AiB).sum(1)
-        Aig = (Ainv @ gc[..., None])[..., 0]                     # (B, F, 3)
-        rhs = -gr + (u @ Aig[..., None])[..., 0].sum(1)
-        dr = np.linalg.solve(Sm, rhs[..., None])[..., 0]
-        dc = -Aig - (AiB @ dr[:, None, :, None])[..., 0]
-        D2, d2, e2 = resid(c + dc, r + dr)
-        ssr2 = (e2**2).sum((1, 2))
-        acc = live & (ssr2 < ssr)
-        small = acc & ((ssr - ssr2 < LM_RTOL * ssr) | (ssr2 < (LM_ATOL_M**2) * F * N))
-        c[acc] += dc[acc]
-        r[acc] += dr[acc]
-        D[acc], d[acc], e[acc], ssr[acc] = D2[acc], d2[acc], e2[acc], ssr2[acc]
-        lam = np.where(acc, np.maximum(lam / 4, 1e-9), lam * 8)
-        live &= ~small & (lam <= 1e8)
-        if not live.any():
-            break
-    if single:
-        return c[0], r[0], float(ssr[0])
-    return c, r, ssr
+    Jacobian and the per-frame 3x3 blocks eliminated (Schur complement on ``r``); compiled
+    (``skeleton.world_lm``). Batched: X (B, F, N, 3), c (B, F, 3), r (B, N) solve B problems
+    at once."""
+    return world_lm(X, c, r, iters, LM_RTOL, LM_ATOL_M)
 
 
 def _four_marker_init(X: np.ndarray, extra_starts=()) -> np.ndarray | None:

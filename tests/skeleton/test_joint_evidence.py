@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hw_sim.articulated import MIN_MARKER_SPACING_M, animate, random_tree
-from skeleton.joints import (HINGE_RATIO, JOINT_REACH_M, _inv3_sym, fit_joint, frame_quality,
+from skeleton.joints import (HINGE_RATIO, JOINT_REACH_M, fit_joint, frame_quality,
                              joint_cost)
 from skeleton.pipeline import (ANCHOR, FALSIFY, FALSIFY_BELOW, HINGE_SURE, JUNCTION_K, POOR_FRAME,
                                WORLD_GAIN, _Completed, _path_max, _point_noise_gain,
@@ -109,12 +109,6 @@ def test_path_max_is_the_costliest_edge_between():
     assert _path_max(top, cost, 3, 0) == 5.0
     assert _path_max(top, cost, 0, 4) == 3.0
     assert _path_max(top, cost, 2, 3) == 2.0
-
-
-def test_inv3_sym_matches_lapack():
-    A = np.random.default_rng(0).normal(size=(4, 6, 3, 3))
-    A = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(3)
-    np.testing.assert_allclose(_inv3_sym(A), np.linalg.inv(A), rtol=1e-10, atol=1e-12)
 
 
 def _noisy(seed, spacing_m=MIN_MARKER_SPACING_M):
