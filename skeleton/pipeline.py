@@ -41,6 +41,7 @@ from skeleton.junctions import (STAR_MARGIN, Junction, joint_gap, joint_spread,
                                 resolve_junctions)
 from skeleton.relink import relink_by_stars
 from skeleton.topology import skeleton_tree, tree_from_edges
+from skeleton.world_lm import warm_up
 
 __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
 
@@ -465,6 +466,7 @@ def _pair_costs(data, members, pairs, min_q, workers: int | None) -> list:
         workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
             os.cpu_count() or 1)
     if workers > 1 and len(pairs) >= PARALLEL_PAIRS and "fork" in mp.get_all_start_methods():
+        warm_up()   # compiled fits loaded once, here, not in every worker
         try:
             # fork: the workers inherit the data (no pickling); each gets its share in
             # chunks small enough to balance 2+2 pairs (slower) against the rest

@@ -32,7 +32,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 __all__ = ["StarFit", "star_misfit", "STAR_FRAMES", "VAR_FLOOR_M2"]
 
@@ -87,6 +87,9 @@ def _frames(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.einsum("fji,fj,fkj->fik", Vt, D, U), cen
 
 
+_BLAS: ThreadpoolController | None = None
+
+
 def star_misfit(traj: np.ndarray, members, group, hub: int, centre,
                 n_frames: int = STAR_FRAMES) -> StarFit:
     """The star of ``group`` (segment indices) around ``hub`` fitted to the group's markers
@@ -96,8 +99,12 @@ def star_misfit(traj: np.ndarray, members, group, hub: int, centre,
     member's joint with the hub, for every member but the hub. Fewer than 10 such frames:
     a StarFit that is not ok and says so."""
     # small dense products: BLAS threads only contend (1.0 s -> 0.13 s for one fit on a
-    # loaded 2-core machine)
-    with threadpool_limits(limits=1, user_api="blas"):
+    # loaded 2-core machine); the controller is made once (finding the BLAS libraries took
+    # 5 ms per fit)
+    global _BLAS
+    if _BLAS is None:
+        _BLAS = ThreadpoolController()
+    with _BLAS.limit(limits=1, user_api="blas"):
         return _star_misfit(traj, members, group, hub, centre, n_frames)
 
 
