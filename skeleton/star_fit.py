@@ -20,11 +20,13 @@ blocks (bundle adjustment's structure), the gauge (each segment's local frame) f
 holding the first frame's pose parameters at their start, and each joint pulled weakly
 towards its start (``JOINT_PULL_MM``: a hinge's centre is free along its axis, and without
 the pull the fit crawls after the noise along it for hundreds of iterations, so stars were
-compared part-converged; the sum of squares returned is the data's). It starts in closed form: each
-segment's rotations by Kabsch of its markers and its joint's start point (a frame even for
-two markers). Written here rather than with SciPy's ``least_squares`` (finite-difference
-Jacobian with its sparsity, lsmr): that took 0.6-1.1 s per star on 3-segment groups, this
-takes 0.04-0.2 s, which is what lets the solver test every tree triple (``skeleton.relink``).
+compared part-converged; the sum of squares returned is the data's); compiled
+(``skeleton.star_lm``). It starts in closed form: each segment's rotations by Kabsch of its
+markers and its joint's start point (a frame even for two markers). Written by hand rather
+than with SciPy's ``least_squares`` (finite-difference Jacobian with its sparsity, lsmr:
+0.6-1.1 s per star on 3-segment groups); stop 22's vectorised NumPy loop took 0.04-0.2 s,
+the compiled one 0.4x that (``benchmarks/bench_star_fit.py``), which is what lets the
+solver test every tree triple (``skeleton.relink``).
 Conventions: docs/conventions.md [arrays], [units], [rotations].
 """
 from __future__ import annotations
@@ -33,6 +35,8 @@ from typing import NamedTuple
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
+
+from skeleton.star_lm import star_lm
 
 __all__ = ["StarFit", "star_misfit", "STAR_FRAMES", "VAR_FLOOR_M2"]
 
@@ -61,17 +65,6 @@ class StarFit(NamedTuple):
     n_res: int
     n_par: int
     n_iter: int = 0
-
-
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """(F, 3) rotation vectors -> (F, 3, 3) rotation matrices."""
-    th = np.linalg.norm(w, axis=1)
-    k = np.where(th[:, None] > 1e-12, w / np.maximum(th, 1e-300)[:, None], 0.0)
-    K = np.zeros((w.shape[0], 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
-    return np.eye(3) + s * K + (1 - c) * (K @ K)
 
 
 def _frames(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,139 +146,19 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
     K = len(others)
     n = [ix.size for ix in idx]
     N = int(sum(n))
-    n_fr = 6 + 3 * K                         # per frame: hub rotation, translation; members'
-    G0 = F * n_fr                            # rotations; then the global parameters:
-    n_y = 3 * n[0]                           # hub marker offsets, joints in the hub,
-    off_z = G0 + n_y + 3 * K + np.concatenate([[0], np.cumsum([3 * m for m in n[1:]])])
-    n_par = int(off_z[-1])                   # members' marker offsets from their joints
+    # parameters: per frame the hub's rotation and translation and each member's rotation;
+    # over all frames the hub's marker offsets, the joints in the hub, the members' marker
+    # offsets from their joints (gauge freedoms included: the same count for every hub)
+    n_par = F * (6 + 3 * K) + 3 * N + 3 * K
     Xs = np.concatenate([X[:, ix] for ix in idx], axis=1)     # (F, N, 3) in model order
-    Rs = [R.copy() for R in R0]              # Rs[0] hub, Rs[k + 1] member k
-    t = th.copy()
-    y = y0.copy()
-    js = j0.copy()
-    zs = [z.copy() for z in zl]
-    n_g = n_par - G0
-    # Jacobian structure: per marker, its 3x3 blocks and their first column in a frame's
-    # dense row block (the frame's own parameters, then the global ones at n_fr + ...)
-    blocks = []                              # (marker, kind, k, column)
-    for i in range(n[0]):
-        blocks += [(i, "wh", 0, 0), (i, "t", 0, 3), (i, "y", 0, n_fr + 3 * i)]
-    i = n[0]
-    for k in range(K):
-        for q in range(n[k + 1]):
-            blocks += [(i, "whj", k, 0), (i, "t", k, 3), (i, "j", k, n_fr + n_y + 3 * k),
-                       (i, "wk", (k, q), 6 + 3 * k),
-                       (i, "z", (k, q), n_fr + off_z[k] - G0 + 3 * q)]
-            i += 1
-
-    def skew(v):                             # (F, 3) -> (F, 3, 3), skew(v) u = v x u
-        S = np.zeros(v.shape[:-1] + (3, 3))
-        S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-        S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-        return S
-
-    def model():
-        out = [np.einsum("fij,nj->fni", Rs[0], y) + t[:, None]]
-        for k in range(K):
-            Jk = t + np.einsum("fij,j->fi", Rs[0], js[k])
-            out.append(np.einsum("fij,nj->fni", Rs[k + 1], zs[k]) + Jk[:, None])
-        return np.concatenate(out, axis=1)
-
-    def jacobian():
-        """(F, 3N, n_fr + n_g) dense per-frame Jacobian: the frame's own parameters, then
-        the global ones."""
-        Jd = np.zeros((F, 3 * N, n_fr + n_g))
-        for m, kind, k, col in blocks:
-            if kind == "wh":
-                v = -skew(np.einsum("fij,j->fi", Rs[0], y[m]))
-            elif kind == "t":
-                v = np.eye(3)
-            elif kind == "y":
-                v = Rs[0]
-            elif kind == "whj":
-                v = -skew(np.einsum("fij,j->fi", Rs[0], js[k]))
-            elif kind == "j":
-                v = Rs[0]
-            elif kind == "wk":
-                v = -skew(np.einsum("fij,j->fi", Rs[k[0] + 1], zs[k[0]][k[1]]))
-            else:
-                v = Rs[k[0] + 1]
-            Jd[:, 3 * m:3 * m + 3, col:col + 3] = v
-        # gauge: the hub's local frame (6) and each member's (3) are free; the first
-        # frame's parameters (as many) stay at their start, which fixes them
-        Jd[0, :, :n_fr] = 0.0
-        return Jd
-
-    def apply(d):
-        """the state after the step ``d`` (rotations by left increments)"""
-        p = d[:G0].reshape(F, n_fr)
-        new_R = [_rodrigues(p[:, :3]) @ Rs[0]] + [
-            _rodrigues(p[:, 6 + 3 * k:9 + 3 * k]) @ Rs[k + 1] for k in range(K)]
-        new = (new_R, t + p[:, 3:6], y + d[G0:G0 + n_y].reshape(-1, 3),
-               js + d[G0 + n_y:G0 + n_y + 3 * K].reshape(K, 3),
-               [zs[k] + d[off_z[k]:off_z[k + 1]].reshape(-1, 3) for k in range(K)])
-        return new
-
-    r = (model() - Xs).reshape(F, 3 * N)
-    jcol = slice(n_y, n_y + 3 * K)           # the joints' columns among the global ones
-
-    def prior(js_):                          # the joints' pull towards their starts (mm^2)
-        d = (js_ - j0) / JOINT_PULL_MM
-        return float(np.sum(d * d))
-
-    ssq = float(np.sum(r * r)) + prior(js)
-    lam = None
-    eye_f, eye_g = np.eye(n_fr), np.eye(n_g)
-    it = 0
-    for it in range(1, MAX_ITER + 1):
-        Jd = jacobian()
-        Jf, Jg = Jd[:, :, :n_fr], Jd[:, :, n_fr:]
-        JfT = Jf.transpose(0, 2, 1)
-        U = JfT @ Jf
-        W = JfT @ Jg
-        Jg2 = Jg.reshape(-1, n_g)
-        V = Jg2.T @ Jg2
-        V[jcol, jcol] += np.eye(3 * K) / JOINT_PULL_MM ** 2
-        ef = (JfT @ r[:, :, None])[:, :, 0]
-        eg = Jg2.T @ r.ravel()
-        eg[jcol] += (js - j0).ravel() / JOINT_PULL_MM ** 2
-        scale = float(np.mean(np.concatenate([np.diagonal(U, axis1=1, axis2=2).ravel(),
-                                              np.diag(V)])))
-        if lam is None:
-            lam = 1e-4
-        while True:
-            # damped normal equations by the Schur complement on the global parameters:
-            # (U + D) df + W dg = -ef, W^T df + (V + D) dg = -eg
-            Ud = U + lam * (np.diagonal(U, axis1=1, axis2=2)[:, :, None] * eye_f
-                            + 1e-9 * scale * eye_f)
-            Vd = V + lam * (np.diag(V) * eye_g + 1e-9 * scale * eye_g)
-            try:
-                Ui_W = np.linalg.solve(Ud, W)
-                Ui_e = np.linalg.solve(Ud, ef[:, :, None])[:, :, 0]
-                W2 = W.reshape(-1, n_g)
-                Sc = Vd - W2.T @ Ui_W.reshape(-1, n_g)
-                dg = np.linalg.solve(Sc, -(eg - W2.T @ Ui_e.ravel()))
-            except np.linalg.LinAlgError as exc:
-                return StarFit(False, f"normal equations failed: {exc}", np.inf, r.size,
-                               n_par)
-            df = -Ui_e - Ui_W @ dg
-            dx = np.concatenate([df.ravel(), dg])
-            if not np.isfinite(dx).all():
-                return StarFit(False, "normal equations not finite", np.inf, r.size, n_par)
-            saved = (Rs, t, y, js, zs)
-            Rs, t, y, js, zs = apply(dx)
-            r_new = (model() - Xs).reshape(F, 3 * N)
-            s_new = float(np.sum(r_new * r_new)) + prior(js)
-            if s_new < ssq:
-                break
-            Rs, t, y, js, zs = saved
-            lam *= 10.0
-            if lam > 1e8:
-                return StarFit(True, "", float(np.sum(r * r)) * 1e-6, r.size, n_par, it)
-        done = ssq - s_new < max(TOL * ssq, STOP_VAR * s_new / r_new.size)
-        r, ssq = r_new, s_new
-        lam = max(lam / 3.0, 1e-9)
-        if done:
-            break
+    seg = np.concatenate([np.full(m, k) for k, m in enumerate(n)]).astype(np.int64)
+    R = np.ascontiguousarray(np.stack(R0))   # (K + 1, F, 3, 3): hub, then the members
+    z = np.ascontiguousarray(np.concatenate(zl)) if K else np.zeros((0, 3))
+    j0 = np.ascontiguousarray(j0)
+    status, ssq, it = star_lm(np.ascontiguousarray(Xs), seg, R, th.copy(), y0.copy(),
+                              j0.copy(), z, j0, JOINT_PULL_MM, MAX_ITER, TOL, STOP_VAR)
+    if status == 2:
+        return StarFit(False, "normal equations not positive definite or not finite", np.inf,
+                       3 * N * F, n_par)
     # the data's sum of squares (the pull only guides the search along near-free directions)
-    return StarFit(True, "", float(np.sum(r * r)) * 1e-6, r.size, n_par, it)
+    return StarFit(True, "", float(ssq) * 1e-6, 3 * N * F, n_par, int(it))
