@@ -55,18 +55,9 @@ def _cholesky(A, L):
 def _cholesky_solve(A, B, L):
     """Solves A X = B (A symmetric positive definite, n x n; B n x m) by Cholesky into B;
     L is scratch (n x n). Returns False when A is not positive definite."""
+    if not _cholesky(A, L):
+        return False
     n = A.shape[0]
-    for i in range(n):
-        for j in range(i + 1):
-            s = A[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            if i == j:
-                if not s > 0.0:
-                    return False
-                L[i, i] = np.sqrt(s)
-            else:
-                L[i, j] = s / L[j, j]
     m = B.shape[1]
     for c in range(m):
         for i in range(n):
