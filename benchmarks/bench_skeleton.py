@@ -38,7 +38,8 @@ perpendicular to the axis) with its p90, p99, maximum and the joints more than 1
 (a median hides a few joints far off), and seconds per figure. Then the thesis' largest case
 (31 markers / 13 segments / 1500 frames) against its ~70 s, and against the solver in one
 process (``workers=1``), without the star fits (``star_margin=inf``) and with the 2+2 world fits
-in vectorised NumPy (stop 22's, ``bench_world_lm.numpy_world_lm``) in the same run.
+and the star fits in vectorised NumPy (stop 22's: ``bench_world_lm.numpy_world_lm``,
+``bench_star_fit.numpy_star_lm``) in the same run.
 """
 from __future__ import annotations
 
@@ -52,9 +53,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.bench_star_fit import numpy_star_lm  # noqa: E402
 from benchmarks.bench_world_lm import numpy_world_lm  # noqa: E402
 from hw_sim.articulated import animate, random_tree  # noqa: E402
-from skeleton import joints  # noqa: E402
+from skeleton import joints, star_fit  # noqa: E402
 from skeleton.junctions import STAR_MARGIN  # noqa: E402
 from skeleton.pipeline import solve_skeleton  # noqa: E402
 from tests.skeleton._figures import (largest_case, min_sibling_joint_distance,  # noqa: E402
@@ -142,22 +144,23 @@ def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1"):
         # the solver as it runs (pair costs in one process per CPU), then with one process
         # (workers=1), then without the star fits (star_margin=inf: the solver before
         # skeleton.star_fit), the baselines of the same run; alternated, best of 3 each
-        # and with the 2+2 world fits in vectorised NumPy (stop 22's, before
-        # skeleton.world_lm compiled them)
+        # and with the 2+2 world fits and the star fits in vectorised NumPy (stop 22's,
+        # before skeleton.world_lm and skeleton.star_lm compiled them)
         modes = {"as run": {}, "workers=1": {"workers": 1},
-                 "no star fits": {"star_margin": np.inf}, "NumPy world fits": {}}
+                 "no star fits": {"star_margin": np.inf}, "NumPy fits": {}}
         best = {m: np.inf for m in modes}
         cpu = {m: 0.0 for m in modes}
         for _ in range(3):
             for m, kw in modes.items():
                 c0 = _cpu()
-                if m == "NumPy world fits":
-                    compiled, joints._world_lm = joints._world_lm, _numpy_world_lm
+                if m == "NumPy fits":
+                    compiled = joints._world_lm, star_fit.star_lm
+                    joints._world_lm, star_fit.star_lm = _numpy_world_lm, numpy_star_lm
                 try:
                     r = run(fig, mo, noise, 0, **kw)
                 finally:
-                    if m == "NumPy world fits":
-                        joints._world_lm = compiled
+                    if m == "NumPy fits":
+                        joints._world_lm, star_fit.star_lm = compiled
                 cpu[m] += (_cpu() - c0) / 3
                 best[m] = min(best[m], r[2])
                 if m == "as run":
@@ -169,8 +172,8 @@ def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1"):
               f"{THESIS_LARGEST_S:.0f} s (ratio {dt / THESIS_LARGEST_S:.3f}); one process "
               f"(workers=1) {best['workers=1']:.2f} s (ratio {dt / best['workers=1']:.2f}); "
               f"without the star fits {best['no star fits']:.2f} s (ratio "
-              f"{dt / best['no star fits']:.2f}); with the NumPy world fits "
-              f"{best['NumPy world fits']:.2f} s (ratio {dt / best['NumPy world fits']:.2f}); "
+              f"{dt / best['no star fits']:.2f}); with stop 22's NumPy fits "
+              f"{best['NumPy fits']:.2f} s (ratio {dt / best['NumPy fits']:.2f}); "
               f"topology {good}; "
               f"median joint error {np.median(e) * 1e3 if e else float('nan'):.3f} mm")
 

@@ -21,7 +21,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import skeleton.junctions as junctions  # noqa: E402
 import skeleton.relink as relink  # noqa: E402
 import skeleton.star_fit as star_fit  # noqa: E402
-from benchmarks.bench_skeleton import run  # noqa: E402
 from hw_sim.articulated import animate, random_tree  # noqa: E402
 
 
@@ -179,6 +178,7 @@ def numpy_star_lm(X, seg, R, t, y, js, z, j0, pull_mm, max_iter, tol, stop_var):
 
 
 def main(seeds="94019,7009,5021,4043,97022"):
+    from benchmarks.bench_skeleton import run   # (bench_skeleton imports this module)
     calls = []
     compiled = star_fit.star_lm
 
