@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from skeleton import star_lm, world_lm
 from skeleton.bvh import write_bvh
 from skeleton.fit import SkeletonFit, fit_skeleton
 from skeleton.ik import refine_fit
@@ -67,6 +68,10 @@ def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None
     if X.shape[1] < 3:
         raise ValueError(f"{X.shape[1]} markers after merging, need at least 3")
     extra = {} if star_margin is None else {"star_margin": star_margin}
+    say("loading the solver's compiled fits (the first run in a checkout compiles them, "
+        "~30 s)")
+    world_lm.warm_up()
+    star_lm.warm_up()
     res = solve_skeleton(X, markers.rate_hz, n_segments=n_segments, rng=rng, progress=say,
                          workers=workers, **extra)
     say("rigid skeleton")

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["star_lm"]
+__all__ = ["star_lm", "warm_up"]
 
 
 @njit(cache=True)
@@ -367,3 +367,12 @@ def star_lm(X, seg, R, t, y, js, z, j0, pull_mm, max_iter, tol, stop_var):
         if done:
             break
     return 0, data, it
+
+
+def warm_up() -> None:
+    """Compiles the kernel, or loads it from the cache, now (on a two-frame star)."""
+    g = np.random.default_rng(0)
+    R = np.broadcast_to(np.eye(3), (2, 2, 3, 3)).copy()
+    star_lm(g.normal(size=(2, 2, 3)), np.array([0, 1], np.int64), R, np.zeros((2, 3)),
+            np.ones((1, 3)), np.ones((1, 3)), np.ones((1, 3)), np.ones((1, 3)), 20.0, 1,
+            0.0, 0.0)
