@@ -26,7 +26,8 @@ showed the anchored-pair search of stop 20 (f405241); 76000 and 77000 first run 
 d6009f7; 86000-89000 first run on d6009f7; at stop 22, 90000-92000 first run on stop 21's code, and
 the star margin (skeleton.junctions.STAR_MARGIN) chosen on their true sibling triples;
 93000-98000 first run on the star fits' code; at stop 23, 99000-102000 first run on the
-compiled fits' code (the same trees); 103000+ untouched)
+compiled fits' code (the same trees), 103000-104000 on it with skeleton.relink.PLAUSIBLE 3
+and 5 (the same trees); 105000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
