@@ -153,7 +153,7 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
     Xs = np.concatenate([X[:, ix] for ix in idx], axis=1)     # (F, N, 3) in model order
     seg = np.concatenate([np.full(m, k) for k, m in enumerate(n)]).astype(np.int64)
     R = np.ascontiguousarray(np.stack(R0))   # (K + 1, F, 3, 3): hub, then the members
-    z = np.ascontiguousarray(np.concatenate(zl)) if K else np.zeros((0, 3))
+    z = np.ascontiguousarray(np.concatenate(zl))   # K >= 1 (checked above)
     j0 = np.ascontiguousarray(j0)
     status, ssq, it = star_lm(np.ascontiguousarray(Xs), seg, R, th.copy(), y0.copy(),
                               j0.copy(), z, j0, JOINT_PULL_MM, MAX_ITER, TOL, STOP_VAR)
