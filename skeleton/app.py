@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skeleton import star_lm, world_lm
+from skeleton import joints, rigid, star_lm, world_lm
 from skeleton.bvh import write_bvh
 from skeleton.fit import SkeletonFit, fit_skeleton
 from skeleton.ik import refine_fit
@@ -72,6 +72,8 @@ def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None
         "~30 s)")
     world_lm.warm_up()
     star_lm.warm_up()
+    rigid.warm_up()
+    joints.warm_up()
     res = solve_skeleton(X, markers.rate_hz, n_segments=n_segments, rng=rng, progress=say,
                          workers=workers, **extra)
     say("rigid skeleton")

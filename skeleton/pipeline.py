@@ -35,7 +35,9 @@ from scipy.signal import butter, sosfiltfilt
 from threadpoolctl import threadpool_limits
 
 from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_cost
+from skeleton.joints import warm_up as warm_up_sphere
 from skeleton.rigid import kabsch
+from skeleton.rigid import warm_up as warm_up_kabsch
 from skeleton.segments import distance_sd, noise_sd, segment_markers
 from skeleton.junctions import (STAR_MARGIN, Junction, joint_gap, joint_spread,
                                 resolve_junctions)
@@ -467,6 +469,8 @@ def _pair_costs(data, members, pairs, min_q, workers: int | None) -> list:
             os.cpu_count() or 1)
     if workers > 1 and len(pairs) >= PARALLEL_PAIRS and "fork" in mp.get_all_start_methods():
         warm_up()   # compiled fits loaded once, here, not in every worker
+        warm_up_kabsch()
+        warm_up_sphere()
         try:
             # fork: the workers inherit the data (no pickling); each gets its share in
             # chunks small enough to balance 2+2 pairs (slower) against the rest

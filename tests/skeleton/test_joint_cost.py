@@ -53,3 +53,21 @@ def test_cost_estimates_noise_for_true_joints_and_exceeds_it_for_false():
     # 1 mm noise per coordinate -> radial residual sd ~ 1 mm for every true joint
     assert np.all(np.abs(tc / NOISE_M - 1) < SIGMA_REL), tc
     assert np.min(fc) > tc.max()
+
+
+def test_compiled_sphere_residuals_and_jacobian():
+    """fit_joint's compiled residuals equal the NumPy expression they replaced, and the
+    Jacobian its finite differences."""
+    from skeleton.joints import _sphere_jac, _sphere_res
+    g = np.random.default_rng(0)
+    pts = g.normal(0, 0.2, (500, 3))
+    lab = g.integers(0, 3, 500)
+    wsq = g.uniform(1.0, 2.0, 500)
+    p = np.array([0.01, -0.02, 0.03, 0.2, 0.25, 0.3])
+    ref = (np.linalg.norm(pts - p[:3], axis=1) - p[3:][lab]) / wsq
+    assert np.array_equal(_sphere_res(p, pts, lab, wsq), ref)
+    J = _sphere_jac(p, pts, lab, wsq, 3)
+    h = 1e-7
+    num = np.stack([(_sphere_res(p + h * e, pts, lab, wsq) - _sphere_res(p - h * e, pts, lab, wsq))
+                    / (2 * h) for e in np.eye(6)], 1)
+    assert np.abs(J - num).max() < 1e-6
