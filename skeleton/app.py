@@ -15,12 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from skeleton import joints, rigid, star_lm, world_lm
 from skeleton.bvh import write_bvh
 from skeleton.fit import SkeletonFit, fit_skeleton
 from skeleton.ik import refine_fit
 from skeleton.markersets import MarkerSets, merge_fragments
-from skeleton.pipeline import SkeletonResult, solve_skeleton
+from skeleton.pipeline import SkeletonResult, solve_skeleton, warm_up
 from skeleton.report import DeviationTable, marker_deviation_table, write_skeleton_json
 from skeleton.rigid_skeleton import RigidSkeleton, build_rigid_skeleton
 
@@ -70,10 +69,7 @@ def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None
     extra = {} if star_margin is None else {"star_margin": star_margin}
     say("loading the solver's compiled fits (the first run in a checkout compiles them, "
         "~30 s)")
-    world_lm.warm_up()
-    star_lm.warm_up()
-    rigid.warm_up()
-    joints.warm_up()
+    warm_up()
     res = solve_skeleton(X, markers.rate_hz, n_segments=n_segments, rng=rng, progress=say,
                          workers=workers, **extra)
     say("rigid skeleton")

@@ -3,9 +3,9 @@
 ``fit_joint(traj (T, M, 3), markers_a, markers_b) -> JointFit``. The segment with more
 markers (>= 3) is the reference; the other segment's markers, expressed in the reference
 frame (Kabsch per frame), stay at constant distances from the joint centre. An algebraic
-(linear) sphere fit gives the start; ``scipy.optimize.least_squares`` minimises the
-distance residuals ``|x_tm - c| - r_m`` with their analytic Jacobian (the variance-of-
-distance cost). A hinge (rank-2 system, singular-value ratio below ``HINGE_RATIO``) has no
+(linear) sphere fit gives the start; Levenberg-Marquardt (MINPACK, ``_minpack_lm``) minimises
+the distance residuals ``|x_tm - c| - r_m`` with their analytic Jacobian (the variance-of-
+distance cost; residuals and Jacobian compiled). A hinge (rank-2 system, singular-value ratio below ``HINGE_RATIO``) has no
 unique centre: it is placed on the axis at the foot of the child markers' centroid.
 Residuals are weighted by their propagated noise (see ``fit_joint``), which makes
 ``JointFit.cost_m`` a layout-independent estimate of the marker noise for a true joint.
@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
-from scipy.optimize import least_squares, leastsq
+from scipy.optimize import leastsq
 
 from skeleton.rigid import kabsch
 from skeleton.world_lm import world_lm
@@ -186,8 +186,7 @@ def fit_joint(traj: np.ndarray, markers_a, markers_b, refine: bool = True,
 
     p = np.concatenate([c, r0])
     if refine:
-        p = (least_squares(fun, p, jac=jac, method="trf", x_scale="jac").x if hinge
-             else _minpack_lm(fun, p, jac)[0])
+        p = _minpack_lm(fun, p, jac)[0]
     c = p[:3]
     axis = np.full(3, np.nan)
     if not hinge and len(pts) - 3 - len(mk) > 0:

@@ -34,18 +34,17 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 from threadpoolctl import threadpool_limits
 
+from skeleton import joints as _joints, rigid as _rigid, star_lm as _star_lm
+from skeleton import world_lm as _world_lm
 from skeleton.joints import JointFit, fit_joint, frame_quality, inertia, joint_cost
-from skeleton.joints import warm_up as warm_up_sphere
 from skeleton.rigid import kabsch
-from skeleton.rigid import warm_up as warm_up_kabsch
 from skeleton.segments import distance_sd, noise_sd, segment_markers
 from skeleton.junctions import (STAR_MARGIN, Junction, joint_gap, joint_spread,
                                 resolve_junctions)
 from skeleton.relink import relink_by_stars
 from skeleton.topology import skeleton_tree, tree_from_edges
-from skeleton.world_lm import warm_up
 
-__all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "COST_CUTOFF_HZ"]
+__all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "warm_up", "COST_CUTOFF_HZ"]
 
 COST_CUTOFF_HZ = 6.0   # low-pass for the topology costs (biomechanics' usual 6 Hz)
 RECHECK = 10.0         # 2+2 pairs re-searched when their quick cost is below RECHECK x ...
@@ -456,6 +455,15 @@ def _one_pair_cost(ij):
     return _pair_cost(*_JOB, ij)
 
 
+def warm_up() -> None:
+    """Loads the solver's compiled kernels now (compiles them on the first run in a checkout,
+    ~30 s): the 2+2 world fit, Kabsch, the sphere fit's residuals and the star fit."""
+    _world_lm.warm_up()
+    _rigid.warm_up()
+    _joints.warm_up()
+    _star_lm.warm_up()
+
+
 def _pair_costs(data, members, pairs, min_q, workers: int | None) -> list:
     """joint_cost's closed-form cost (``detail``) of every pair, in order, in ``workers``
     forked processes (None: the CPUs this process may run on) when there are at least
@@ -469,8 +477,6 @@ def _pair_costs(data, members, pairs, min_q, workers: int | None) -> list:
             os.cpu_count() or 1)
     if workers > 1 and len(pairs) >= PARALLEL_PAIRS and "fork" in mp.get_all_start_methods():
         warm_up()   # compiled fits loaded once, here, not in every worker
-        warm_up_kabsch()
-        warm_up_sphere()
         try:
             # fork: the workers inherit the data (no pickling); each gets its share in
             # chunks small enough to balance 2+2 pairs (slower) against the rest
