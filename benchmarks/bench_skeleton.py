@@ -39,9 +39,11 @@ the same run: edges may differ only inside a group of coincident joints), report
 perpendicular to the axis) with its p90, p99, maximum and the joints more than 10 mm off
 (a median hides a few joints far off), and seconds per figure. Then the thesis' largest case
 (31 markers / 13 segments / 1500 frames) against its ~70 s, and against the solver in one
-process (``workers=1``), without the star fits (``star_margin=inf``) and with the 2+2 world fits
-and the star fits in vectorised NumPy (stop 22's: ``bench_world_lm.numpy_world_lm``,
-``bench_star_fit.numpy_star_lm``) in the same run.
+process (``workers=1``), without the star fits (``star_margin=inf``) and with the fits
+uncompiled (``_NUMPY_FITS``: the 2+2 world fits and the star fits in vectorised NumPy, stop
+22's ``bench_world_lm.numpy_world_lm`` and ``bench_star_fit.numpy_star_lm``; Kabsch by NumPy's
+SVD, ``skeleton.rigid.kabsch_svd``, and fit_joint's sphere residuals in NumPy, stop 23's) in
+the same run.
 """
 from __future__ import annotations
 
@@ -58,8 +60,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.bench_star_fit import numpy_star_lm  # noqa: E402
 from benchmarks.bench_world_lm import numpy_world_lm  # noqa: E402
 from hw_sim.articulated import animate, random_tree  # noqa: E402
-from skeleton import joints, star_fit  # noqa: E402
+from skeleton import joints, pipeline, star_fit  # noqa: E402
 from skeleton.junctions import STAR_MARGIN  # noqa: E402
+from skeleton.rigid import kabsch_svd  # noqa: E402
 from skeleton.pipeline import solve_skeleton  # noqa: E402
 from tests.skeleton._figures import (largest_case, min_sibling_joint_distance,  # noqa: E402
                                      segment_map, solver_joint_errors, topology_equivalent)
@@ -156,13 +159,12 @@ def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1"):
             for m, kw in modes.items():
                 c0 = _cpu()
                 if m == "NumPy fits":
-                    compiled = joints._world_lm, star_fit.star_lm
-                    joints._world_lm, star_fit.star_lm = _numpy_world_lm, numpy_star_lm
+                    compiled = _swap_fits(_NUMPY_FITS)
                 try:
                     r = run(fig, mo, noise, 0, **kw)
                 finally:
                     if m == "NumPy fits":
-                        joints._world_lm, star_fit.star_lm = compiled
+                        _swap_fits(compiled)
                 cpu[m] += (_cpu() - c0) / 3
                 best[m] = min(best[m], r[2])
                 if m == "as run":
@@ -174,10 +176,33 @@ def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1"):
               f"{THESIS_LARGEST_S:.0f} s (ratio {dt / THESIS_LARGEST_S:.3f}); one process "
               f"(workers=1) {best['workers=1']:.2f} s (ratio {dt / best['workers=1']:.2f}); "
               f"without the star fits {best['no star fits']:.2f} s (ratio "
-              f"{dt / best['no star fits']:.2f}); with stop 22's NumPy fits "
+              f"{dt / best['no star fits']:.2f}); with the fits uncompiled "
               f"{best['NumPy fits']:.2f} s (ratio {dt / best['NumPy fits']:.2f}); "
               f"topology {good}; "
               f"median joint error {np.median(e) * 1e3 if e else float('nan'):.3f} mm")
+
+
+def _numpy_sphere_res(p, pts, lab, wsq):
+    """skeleton.joints._sphere_res as NumPy (stop 23's fit_joint residuals)"""
+    return (np.linalg.norm(pts - p[:3], axis=1) - p[3:][lab]) / wsq
+
+
+def _numpy_sphere_jac(p, pts, lab, wsq, n_r):
+    """skeleton.joints._sphere_jac as NumPy (stop 23's)"""
+    diff = pts - p[:3]
+    d = np.linalg.norm(diff, axis=1, keepdims=True)
+    J = np.zeros((len(pts), 3 + n_r))
+    J[:, :3] = -diff / np.maximum(d, 1e-12)
+    J[np.arange(len(pts)), 3 + lab] = -1.0
+    return J / wsq[:, None]
+
+
+def _swap_fits(fits: dict) -> dict:
+    """Puts ``fits`` ((module, name) -> function) in place; returns what was there."""
+    old = {(mod, name): getattr(mod, name) for mod, name in fits}
+    for (mod, name), f in fits.items():
+        setattr(mod, name, f)
+    return old
 
 
 def _numpy_world_lm(X, c, r, iters=joints.COST_ITERS):
@@ -187,6 +212,14 @@ def _numpy_world_lm(X, c, r, iters=joints.COST_ITERS):
         X, c, r = np.asarray(X)[None], np.asarray(c)[None], np.asarray(r)[None]
     c, r, ssr = numpy_world_lm(X, c, r, iters)
     return (c[0], r[0], float(ssr[0])) if single else (c, r, ssr)
+
+
+# the uncompiled fits: stop 22's NumPy world and star fits, stop 23's SVD Kabsch and NumPy
+# sphere residuals and Jacobian
+_NUMPY_FITS = {(joints, "_world_lm"): _numpy_world_lm, (star_fit, "star_lm"): numpy_star_lm,
+               (joints, "kabsch"): kabsch_svd, (pipeline, "kabsch"): kabsch_svd,
+               (joints, "_sphere_res"): _numpy_sphere_res,
+               (joints, "_sphere_jac"): _numpy_sphere_jac}
 
 
 def _cpu() -> float:
