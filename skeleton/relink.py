@@ -11,12 +11,8 @@ variance per residual (the junction step's margin, ``skeleton.junctions``), c is
 from a (and symmetrically). An alternative is only fitted where its new pair is a plausible
 joint at all (cost at most ``PLAUSIBLE`` x the floor): otherwise the MST's choice stands
 without a fit. One move per round, the most decisive first, until none is left (at most
-``MAX_MOVES``); fits are cached per triple and hub. A star's fit can depend on its start
-(a 2-marker hub's roll is only held by its joints): before a move, the current star is
-fitted again from the joints the winning star found (the same two points), and the better
-of its two fits is compared (seed 109048, 1 mm: siblings 3.1 mm apart, the current star
-started 46-57 mm off the true joints stopped at 2.1x the winner's sum of squares, a 4012x
-margin; from the winner's joints it fits better than the winner).
+``MAX_MOVES``); fits are cached per triple and hub (the fitted sum of squares does not
+depend on the start).
 
 Seed 4043 of benchmarks/bench_skeleton.py (1 mm): siblings 2 (2 markers) and 4 (3 markers)
 hang from 1 with joints 116 mm apart; the tree hung 2 from 4 (cost 1.26x the floor against
@@ -56,7 +52,6 @@ def relink_by_stars(traj: np.ndarray, members, parents, joint_starts, cost: np.n
         raise ValueError(f"cost.shape={cost.shape}, expected ({S}, {S})")
     say = log or (lambda msg: None)
     cache: dict = {}
-    refit: set = set()      # (triple, current hub, alternative hub) re-fitted from the winner
     moves = []
     if not np.isfinite(margin):
         return parents, moves
@@ -90,18 +85,6 @@ def relink_by_stars(traj: np.ndarray, members, parents, joint_starts, cost: np.n
                             continue
                         var = max(min(cur.ssq_m2, alt.ssq_m2) / cur.n_res, VAR_FLOOR_M2)
                         m = (cur.ssq_m2 - alt.ssq_m2) / var
-                        if m > margin and (tri, b, hub) not in refit:
-                            # before a move: the current star again, started at the joints
-                            # the winner found (the same two points), kept when it fits
-                            # better - a star's fit depends on its start (seed 109048)
-                            refit.add((tri, b, hub))
-                            again = star_misfit(traj, members, set(tri), b,
-                                                {hub: alt.joints[b], moved: alt.joints[moved]})
-                            if again.ok and again.ssq_m2 < cur.ssq_m2:
-                                cache[tri, b] = cur = again
-                                var = max(min(cur.ssq_m2, alt.ssq_m2) / cur.n_res,
-                                          VAR_FLOOR_M2)
-                                m = (cur.ssq_m2 - alt.ssq_m2) / var
                         if m > margin and (best is None or m > best[0]):
                             best = (m, moved, b, hub)
         if best is None:
