@@ -27,7 +27,8 @@ d6009f7; 86000-89000 first run on d6009f7; at stop 22, 90000-92000 first run on 
 the star margin (skeleton.junctions.STAR_MARGIN) chosen on their true sibling triples;
 93000-98000 first run on the star fits' code; at stop 23, 99000-102000 first run on the
 compiled fits' code (the same trees), 103000-104000 on it with skeleton.relink.PLAUSIBLE 3
-and 5 (the same trees); 105000+ untouched)
+and 5 (the same trees); at stop 24, 105000-116000 first run on its compiled Kabsch and
+sphere residuals (0595076); 117000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
