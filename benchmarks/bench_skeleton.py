@@ -28,7 +28,8 @@ the star margin (skeleton.junctions.STAR_MARGIN) chosen on their true sibling tr
 93000-98000 first run on the star fits' code; at stop 23, 99000-102000 first run on the
 compiled fits' code (the same trees), 103000-104000 on it with skeleton.relink.PLAUSIBLE 3
 and 5 (the same trees); at stop 24, 105000-116000 first run on its compiled Kabsch and
-sphere residuals (0595076); 117000+ untouched)
+sphere residuals (0595076), and the re-link's check of an unconverged current star then chosen
+on the failure 109048; 117000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);

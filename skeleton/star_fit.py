@@ -57,7 +57,9 @@ STOP_VAR = 0.1      # less than this x the residual variance (hub margins are 20
 class StarFit(NamedTuple):
     """ok/reason; ssq_m2: residual sum of squares (m^2) over n_res residuals; n_par: the
     model's parameters (gauge freedoms included: the same for every hub of one group);
-    n_iter: Levenberg-Marquardt iterations (``MAX_ITER``: stopped before converging)."""
+    n_iter: Levenberg-Marquardt iterations (``MAX_ITER``: stopped before converging);
+    joints: member -> (T, 3) its fitted joint with the hub in world coordinates (m) on the
+    fitted frames, NaN elsewhere (a start for another star of the same group)."""
 
     ok: bool
     reason: str
@@ -65,6 +67,7 @@ class StarFit(NamedTuple):
     n_res: int
     n_par: int
     n_iter: int = 0
+    joints: dict | None = None
 
 
 def _frames(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -155,10 +158,16 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
     R = np.ascontiguousarray(np.stack(R0))   # (K + 1, F, 3, 3): hub, then the members
     z = np.ascontiguousarray(np.concatenate(zl))   # K >= 1 (checked above)
     j0 = np.ascontiguousarray(j0)
-    status, ssq, it = star_lm(np.ascontiguousarray(Xs), seg, R, th.copy(), y0.copy(),
-                              j0.copy(), z, j0, JOINT_PULL_MM, MAX_ITER, TOL, STOP_VAR)
+    t_fit, js_fit = th.copy(), j0.copy()
+    status, ssq, it = star_lm(np.ascontiguousarray(Xs), seg, R, t_fit, y0.copy(),
+                              js_fit, z, j0, JOINT_PULL_MM, MAX_ITER, TOL, STOP_VAR)
     if status == 2:
         return StarFit(False, "normal equations not positive definite or not finite", np.inf,
                        3 * N * F, n_par)
+    joints = {}
+    for k, s in enumerate(others):      # world joint of member s with the hub, fitted frames
+        w = np.full((traj.shape[0], 3), np.nan)
+        w[sel] = (t_fit + np.einsum("fij,j->fi", R[0], js_fit[k])) * 1e-3
+        joints[s] = w
     # the data's sum of squares (the pull only guides the search along near-free directions)
-    return StarFit(True, "", float(ssq) * 1e-6, 3 * N * F, n_par, int(it))
+    return StarFit(True, "", float(ssq) * 1e-6, 3 * N * F, n_par, int(it), joints)
