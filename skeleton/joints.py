@@ -3,10 +3,11 @@
 ``fit_joint(traj (T, M, 3), markers_a, markers_b) -> JointFit``. The segment with more
 markers (>= 3) is the reference; the other segment's markers, expressed in the reference
 frame (Kabsch per frame), stay at constant distances from the joint centre. An algebraic
-(linear) sphere fit gives the start; Levenberg-Marquardt (MINPACK, ``_minpack_lm``) minimises
-the distance residuals ``|x_tm - c| - r_m`` with their analytic Jacobian (the variance-of-
-distance cost; residuals and Jacobian compiled). A hinge (rank-2 system, singular-value ratio below ``HINGE_RATIO``) has no
-unique centre: it is placed on the axis at the foot of the child markers' centroid.
+(linear) sphere fit gives the start; Levenberg-Marquardt (MINPACK, ``_minpack_lm``)
+minimises the distance residuals ``|x_tm - c| - r_m`` with their analytic Jacobian (the
+variance-of-distance cost; residuals and Jacobian compiled). A hinge (rank-2 system,
+singular-value ratio below ``HINGE_RATIO``) has no unique centre: it is placed on the axis
+at the foot of the child markers' centroid.
 Residuals are weighted by their propagated noise (see ``fit_joint``), which makes
 ``JointFit.cost_m`` a layout-independent estimate of the marker noise for a true joint.
 Two 2-marker segments have no frame: a per-frame centre at constant distances from all
