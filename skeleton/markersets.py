@@ -83,7 +83,11 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    put back a piece that step 4's jumps had moved), nor one that makes the direction
    between two markers moving as one rigid body (distance sd <= 1.5 times the measured sd)
    turn by ``turn_margin`` more across fragment changes (figure 939: the two markers of a
-   2-marker segment, 40.5 -> 172.6 deg);
+   2-marker segment, 40.5 -> 172.6 deg), nor one that moves a fragment into a marker while
+   a track moving as one body with that marker's other fragments (sd <= 1.5 x s0 over >= 100
+   frames) is not rigid to it (sd > 3 x s0: it cannot be a marker of that body; figure 379:
+   a marker's last 26 frames went to a marker of the next segment, 4.1 x s0 from its one-body
+   partner, on voters' partners across a joint that were rigid over the voters' frames only);
 4c. misfit pieces (``_move_misfits``): a piece too short to move a track's sd (figure 617:
    the first 11 frames of a marker whose next piece starts 26 frames later, given to a
    marker of another segment 4.6-9.4 mm from it over those frames) is judged by the jumps
@@ -737,7 +741,8 @@ def _cross_alternatives(span: dict, ga, gb):
 
 
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
-                  max_rounds=10, jump_margin=10.8, one_body=1.5, turn_margin=np.pi / 3):
+                  max_rounds=10, jump_margin=10.8, one_body=1.5, turn_margin=np.pi / 3,
+                  body_veto=True):
     """Step 4b (module docstring): runs of fragments exchanged between two markers, judged
     by voting fragments. Every fragment seen in >= ``voter_frames`` frames votes with its
     partners: the markers rigid to it (distance sd <= ``rigid`` x the measured sd ``s0``
@@ -753,7 +758,9 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
     two markers that move as one rigid body (distance sd <= ``one_body`` (1.5) x s0, the
     factor at which skeleton.segments merges two clusters) - one that makes the direction
     between them turn by ``turn_margin`` more across fragment changes (``_turning``: a swap
-    flips it). Step 4's looser ``rigid_pair`` (5 x s0) let the veto block a right exchange
+    flips it), nor one that moves a fragment into a marker while a track moving as one body
+    with the marker's other fragments is not rigid to it (``body_veto``; figure 379).
+    Step 4's looser ``rigid_pair`` (5 x s0) let the veto block a right exchange
     in figure 261: markers of two segments at 4.8 x s0, whose direction turned 99 -> 161 deg
     when put right. Figure 939: the two markers of a 2-marker segment had
     their first runs exchanged on voters whose partners across joints were rigid over the
@@ -807,6 +814,22 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
             ok[[a, b]] = False
             return np.flatnonzero(ok)
 
+        def off_body(g, new, ex):
+            """a fragment moved into the marker g (``new``: its fragments after the
+            exchange) is not rigid (sd > ``rigid`` x s0) to a track that moves as one body
+            with the fragments g keeps (sd <= ``one_body`` x s0 to each it is seen with,
+            over >= ``voter_frames`` frames): it cannot be a marker of that body (figure
+            379: a marker's last 26 frames moved to a marker of the next segment, 4.1 x s0
+            from its one-body partner; the voters' partners across a joint outweighed it)"""
+            kept = [h for h in new if h in g]
+            moved = [f for f in new if f not in g]
+            if not (kept and moved):
+                return False
+            body = _rigid_to_all(sd_of, kept, one_body * s0)
+            body[ex] = False
+            body &= (vis[:, kept].any(1)[:, None] & ~np.isnan(P[:, :, 0])).sum(0) >= voter_frames
+            return any((sd_of(f)[body] > rigid * s0).any() for f in moved)
+
         bad = [m for m, g in enumerate(groups) if any(
             part[f].size and np.nanmax(_sd_to(P[:, part[f]], P[:, m], min_frames)) > rigid * s0
             for f in g if f in part)]
@@ -842,6 +865,9 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                             turns = turning_judged(a, b)
                         if turns is not None and (_turning(X, vis, na, nb)
                                                   >= turns + turn_margin):
+                            continue
+                        if body_veto and (off_body(groups[a], na, ex)
+                                          or off_body(groups[b], nb, ex)):
                             continue
                         best = (gain, a, b, na, nb)
         if best is None:

@@ -397,3 +397,24 @@ def test_cross_exchange_never_flips_a_rigid_pair(monkeypatch):
     assert {frozenset(int(owner[f]) for f in g) for g in mixed} == {frozenset((11, 12))}
     assert fig.marker_segment[11] == fig.marker_segment[12]
     assert (fig.marker_segment == fig.marker_segment[11]).sum() == 2
+
+
+def test_cross_exchange_never_puts_a_piece_off_a_rigid_body(monkeypatch):
+    """Benchmark figure 379 (failing since stop 18): the linkage merges every marker right,
+    but step 4b moved the last 26 frames of a marker (segment 6) to a marker of the next
+    segment (9), on voters' partners across a joint that were rigid over the voters' frames
+    only (gain 1.06 against the margin of 1). That marker's one-body partner on segment 9
+    is 4.1 x s0 off rigid to the piece; such a move is not made."""
+    import functools
+
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(379)
+    before = merge_fragments(X, repair_swaps=False)
+    assert all(len({int(owner[f]) for f in g}) == 1 for g in before.groups)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    # without the veto, step 4b mixes markers of two segments (the failure guarded against)
+    monkeypatch.setattr(ms, "_repair_cross",
+                        functools.partial(ms._repair_cross, body_veto=False))
+    mixed = [g for g in merge_fragments(X).groups if len({int(owner[f]) for f in g}) > 1]
+    assert [sorted({int(owner[f]) for f in g}) for g in mixed] == [[18, 27]]
+    assert fig.marker_segment[18] != fig.marker_segment[27]
