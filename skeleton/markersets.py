@@ -83,11 +83,14 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    put back a piece that step 4's jumps had moved), nor one that makes the direction
    between two markers moving as one rigid body (distance sd <= 1.5 times the measured sd)
    turn by ``turn_margin`` more across fragment changes (figure 939: the two markers of a
-   2-marker segment, 40.5 -> 172.6 deg), nor one that moves a fragment into a marker while
-   a track moving as one body with that marker's other fragments (sd <= 1.5 x s0 over >= 100
-   frames) is not rigid to it (sd > 3 x s0: it cannot be a marker of that body; figure 379:
-   a marker's last 26 frames went to a marker of the next segment, 4.1 x s0 from its one-body
-   partner, on voters' partners across a joint that were rigid over the voters' frames only);
+   2-marker segment, 40.5 -> 172.6 deg), nor one that moves a fragment off a body it was
+   on: rigid (sd <= 3 x s0) to every track moving as one body with its old marker's other
+   fragments (sd <= 1.5 x s0 over >= 100 frames), and not rigid to one moving as one body
+   with its new marker's (it cannot be a marker of that body; figure 379: a marker's last 26
+   frames went to a marker of the next segment, 4.1 x s0 off its one-body partner there, on
+   voters' partners across a joint that were rigid over the voters' frames only). A
+   fragment already off its body may move: figure 799's three mixed markers are put right
+   by two exchanges, the first of which leaves a piece on a wrong marker;
 4c. misfit pieces (``_move_misfits``): a piece too short to move a track's sd (figure 617:
    the first 11 frames of a marker whose next piece starts 26 frames later, given to a
    marker of another segment 4.6-9.4 mm from it over those frames) is judged by the jumps
@@ -95,9 +98,14 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    (``_misfit`` above ``jump_margin`` times the measured sd squared on each track rigid to
    it and to them for >= 100 frames; one judge at the same distance is support enough:
    in figure 31 a marker of another segment rigid to both fragments of one marker sat
-   9.7 mm further from the first) moves to the one marker, sharing no frame with it, that
-   it fits (within that bound on every judge), one move per round, the largest misfit
-   first;
+   9.7 mm further from the first) - or that a track moving as one body with them (sd <=
+   1.5 x s0 to each, over >= 100 frames: a segment partner, not a marker across a joint
+   rigid for a while, as in figure 31) finds not rigid to it (> 3 x s0) or at another
+   distance (jump above the bound): figures 186 and 925, a piece of another segment's
+   marker whose one-body partners there were 5.2-15.2 x s0 off rigid to it, so no judge
+   saw it - moves to the one marker, sharing no frame with it, that it fits (within that
+   bound on every judge, and off no one-body partner), one move per round, the largest
+   misfit first;
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
@@ -758,8 +766,8 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
     two markers that move as one rigid body (distance sd <= ``one_body`` (1.5) x s0, the
     factor at which skeleton.segments merges two clusters) - one that makes the direction
     between them turn by ``turn_margin`` more across fragment changes (``_turning``: a swap
-    flips it), nor one that moves a fragment into a marker while a track moving as one body
-    with the marker's other fragments is not rigid to it (``body_veto``; figure 379).
+    flips it), nor one that moves a fragment off a one-body track it was rigid to onto one
+    it is not (``body_veto``; figures 379 and 799).
     Step 4's looser ``rigid_pair`` (5 x s0) let the veto block a right exchange
     in figure 261: markers of two segments at 4.8 x s0, whose direction turned 99 -> 161 deg
     when put right. Figure 939: the two markers of a 2-marker segment had
@@ -814,21 +822,34 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
             ok[[a, b]] = False
             return np.flatnonzero(ok)
 
-        def off_body(g, new, ex):
-            """a fragment moved into the marker g (``new``: its fragments after the
-            exchange) is not rigid (sd > ``rigid`` x s0) to a track that moves as one body
-            with the fragments g keeps (sd <= ``one_body`` x s0 to each it is seen with,
-            over >= ``voter_frames`` frames): it cannot be a marker of that body (figure
-            379: a marker's last 26 frames moved to a marker of the next segment, 4.1 x s0
-            from its one-body partner; the voters' partners across a joint outweighed it)"""
-            kept = [h for h in new if h in g]
-            moved = [f for f in new if f not in g]
-            if not (kept and moved):
-                return False
-            body = _rigid_to_all(sd_of, kept, one_body * s0)
-            body[ex] = False
-            body &= (vis[:, kept].any(1)[:, None] & ~np.isnan(P[:, :, 0])).sum(0) >= voter_frames
-            return any((sd_of(f)[body] > rigid * s0).any() for f in moved)
+        def body_sd(kept, f, ex):
+            """the distance sd of fragment f to the tracks that move as one body with the
+            fragments ``kept`` (``_one_body``) and are seen with it"""
+            if not kept:
+                return np.zeros(0)
+            sd = sd_of(f)[_one_body(vis, P, sd_of, kept, ex, one_body * s0, voter_frames)]
+            return sd[~np.isnan(sd)]
+
+        def displaced(g, new, h, ex):
+            """a fragment moves from marker h into marker g (``new``: g's fragments after
+            the exchange) off a body it was on: rigid (sd <= ``rigid`` x s0) to every track
+            moving as one body with the fragments h keeps (one at least), and not rigid to
+            one moving as one body with those g keeps. It cannot be a marker of that body
+            (figure 379: a marker's last 26 frames moved to a marker of the next segment,
+            4.1 x s0 off its one-body partner there, 0.9 x s0 from its own; the voters'
+            partners across a joint outweighed it). A fragment already off its body may
+            move (figure 799: three markers' pieces put right in two exchanges, the first
+            leaving a piece on a wrong marker)"""
+            kept = [f for f in new if f in g]
+            stay = [f for f in h if f not in new]
+            for f in new:
+                if f in g:
+                    continue
+                home = body_sd(stay, f, ex)
+                if (home.size and (home <= rigid * s0).all()
+                        and (body_sd(kept, f, ex) > rigid * s0).any()):
+                    return True
+            return False
 
         bad = [m for m, g in enumerate(groups) if any(
             part[f].size and np.nanmax(_sd_to(P[:, part[f]], P[:, m], min_frames)) > rigid * s0
@@ -866,8 +887,8 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                         if turns is not None and (_turning(X, vis, na, nb)
                                                   >= turns + turn_margin):
                             continue
-                        if body_veto and (off_body(groups[a], na, ex)
-                                          or off_body(groups[b], nb, ex)):
+                        if body_veto and (displaced(groups[a], na, groups[b], ex)
+                                          or displaced(groups[b], nb, groups[a], ex)):
                             continue
                         best = (gain, a, b, na, nb)
         if best is None:
@@ -925,6 +946,34 @@ def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames) ->
     return ss(kept + [f])[use]
 
 
+def _one_body(vis, P, sd_of, kept, excl, body_sd, body_frames) -> np.ndarray:
+    """(M,) bool: the tracks of P (T, M, 3), not in ``excl``, that move as one body with
+    the fragments ``kept`` (one marker): distance sd <= ``body_sd`` to each of them they are
+    seen with (``_rigid_to_all``), over >= ``body_frames`` frames in all."""
+    body = _rigid_to_all(sd_of, kept, body_sd)
+    body[excl] = False
+    return body & ((vis[:, kept].any(1)[:, None] & ~np.isnan(P[:, :, 0])).sum(0)
+                   >= body_frames)
+
+
+def _off_body(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, body_frames) -> bool:
+    """Fragment ``f`` cannot be the marker of the fragments ``kept``: a track of P (not in
+    ``excl``) that moves as one body with them (sd <= ``body_sd`` to each it is seen with,
+    over >= ``body_frames`` frames) is not rigid to f (sd > ``rigid_sd``) or sits at another
+    distance from it (``_jump_ss`` of kept + [f] above that of kept by ``bound``)."""
+    if not kept:
+        return False
+    body = _one_body(vis, P, sd_of, kept, excl, body_sd, body_frames)
+    sd = sd_of(f)
+    js = np.flatnonzero(body & ~np.isnan(sd))
+    if js.size == 0:
+        return False
+    if (sd[js] > rigid_sd).any():
+        return True
+    ss = _jump_ss(X, vis, kept + [f], P[:, js])
+    return bool((ss(kept + [f]) - ss(kept) > bound).any())
+
+
 def _fits(costs, bound) -> bool:
     """``_misfit``'s costs say the fragment fits: some judge, and every one within
     ``bound``."""
@@ -932,14 +981,16 @@ def _fits(costs, bound) -> bool:
 
 
 def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_frames=100,
-                  max_rounds=10):
+                  max_rounds=10, one_body=1.5):
     """Step 4c (module docstring): a fragment that fits the other fragments of its marker
     on no judge (``_misfit`` above ``jump_margin`` x s0 squared on every track rigid to it
     and to them: it sits at other distances from all their segment partners; one judge at
     the same distance is support enough - in figure 31 a marker of another segment, rigid
-    to both fragments, sat 9.7 mm further from one) moves to the one marker it fits
-    (``_fits``) without sharing a frame with it; one move per round (the largest misfit
-    first), at most ``max_rounds``."""
+    to both fragments, sat 9.7 mm further from one) - or that is off a track moving as one
+    body with them (``_off_body``; ``one_body`` x s0, 0 turns it off) - moves to the one
+    marker it fits (``_fits``, and not ``_off_body``) without sharing a frame with it; one
+    move per round (the largest misfit first; a piece no judge sees, first of all), at
+    most ``max_rounds``."""
     vis = ~np.isnan(X[..., 0])
     bound = jump_margin * s0 ** 2
     for _ in range(max_rounds):
@@ -953,15 +1004,20 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
             if len(g) < 2:
                 continue
             for f in g:
-                miss = _misfit(X, vis, P, sd_of, f, [h for h in g if h != f], [a],
+                kept = [h for h in g if h != f]
+                miss = _misfit(X, vis, P, sd_of, f, kept, [a],
                                rigid * s0, bound, voter_frames)
-                if not (miss.size and miss.min() > bound):
+                off = _off_body(X, vis, P, sd_of, f, kept, [a], rigid * s0, one_body * s0,
+                                bound, voter_frames)
+                if not (miss.size and miss.min() > bound) and not off:
                     continue
                 to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
                       and _fits(_misfit(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
-                                        bound, voter_frames), bound)]
+                                        bound, voter_frames), bound)
+                      and not _off_body(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
+                                        one_body * s0, bound, voter_frames)]
                 if len(to) == 1:
-                    moves.append((float(miss.min()), f, a, to[0]))
+                    moves.append((float(miss.max()) if miss.size else np.inf, f, a, to[0]))
         if not moves:
             break
         _, f, a, b = max(moves)

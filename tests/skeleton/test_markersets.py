@@ -403,8 +403,9 @@ def test_cross_exchange_never_puts_a_piece_off_a_rigid_body(monkeypatch):
     """Benchmark figure 379 (failing since stop 18): the linkage merges every marker right,
     but step 4b moved the last 26 frames of a marker (segment 6) to a marker of the next
     segment (9), on voters' partners across a joint that were rigid over the voters' frames
-    only (gain 1.06 against the margin of 1). That marker's one-body partner on segment 9
-    is 4.1 x s0 off rigid to the piece; such a move is not made."""
+    only (gain 1.06 against the margin of 1). The piece was rigid to its own marker's
+    one-body partner (0.9 x s0) and is 4.1 x s0 off rigid to that of the new marker; such a
+    move is not made."""
     import functools
 
     import skeleton.markersets as ms
@@ -418,3 +419,36 @@ def test_cross_exchange_never_puts_a_piece_off_a_rigid_body(monkeypatch):
     mixed = [g for g in merge_fragments(X).groups if len({int(owner[f]) for f in g}) > 1]
     assert [sorted({int(owner[f]) for f in g}) for g in mixed] == [[18, 27]]
     assert fig.marker_segment[18] != fig.marker_segment[27]
+
+
+@pytest.mark.parametrize("k, marker, other", [(186, 51, 39), (925, 10, 14)])
+def test_piece_off_a_rigid_body_moves_to_the_marker_it_fits(monkeypatch, k, marker, other):
+    """Benchmark figures 186 and 925 (failing since stop 16 / stop 21): a piece of one
+    marker sits in the track of a marker of another segment (186: 37 frames; 925: the first
+    80). Two markers that move as one body with that track's other fragments are not rigid
+    to the piece (sd 12.1-15.2 and 5.2-11.2 x s0), so it has no step-4c judge there (a judge
+    is rigid to the piece) and stayed. Step 4c now counts such a one-body partner, or one
+    at another distance, as proof that the piece is not that marker; it moves to the one
+    marker it fits (its own: 1.0-1.2 x s0)."""
+    import functools
+
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(k)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    # without one-body partners as proof, the piece stays (the failure guarded against)
+    monkeypatch.setattr(ms, "_move_misfits", functools.partial(ms._move_misfits, one_body=0.0))
+    mixed = [g for g in merge_fragments(X).groups if len({int(owner[f]) for f in g}) > 1]
+    assert [sorted({int(owner[f]) for f in g}) for g in mixed] == [sorted((marker, other))]
+    assert fig.marker_segment[marker] != fig.marker_segment[other]
+
+
+def test_cross_exchange_may_move_a_piece_already_off_its_body():
+    """Benchmark figure 799: the linkage mixes three markers of three segments; step 4b puts
+    them right in two exchanges, the first of which moves a piece that was already off its
+    body onto another wrong marker. The veto of a move off a rigid body (figure 379) first
+    blocked that exchange whatever the piece's old place, and the three stayed mixed."""
+    fig, mo, X, owner = _bench_figure(799)
+    before = merge_fragments(X, repair_swaps=False)
+    mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
+    assert len(mixed) == 3                      # the failure this test guards against
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
