@@ -376,6 +376,18 @@ def test_three_ids_of_two_segments_stay_apart(monkeypatch):
     assert sorted(map(sorted, after)) == sorted(map(sorted, groups))
 
 
+def _mixed_with(monkeypatch, X, owner, step, **kw):
+    """The physical markers (sorted) of each mixed id when the repair step ``step`` (a
+    function of skeleton.markersets) runs with ``kw``."""
+    import functools
+
+    import skeleton.markersets as ms
+    monkeypatch.setattr(ms, step, functools.partial(getattr(ms, step), **kw))
+    out = [sorted({int(owner[f]) for f in g}) for g in merge_fragments(X).groups]
+    monkeypatch.undo()
+    return [m for m in out if len(m) > 1]
+
+
 def test_cross_exchange_never_flips_a_rigid_pair(monkeypatch):
     """Benchmark figure 939 (first run at stop 21): the linkage merges every marker right,
     but step 4b exchanged the first runs of the two markers of a 2-marker segment, on voters
@@ -383,18 +395,13 @@ def test_cross_exchange_never_flips_a_rigid_pair(monkeypatch):
     between the two markers then turned 172.6 deg across fragment changes instead of
     40.5 deg; an exchange that turns a pair moving as one rigid body by ``turn_margin``
     more is not made."""
-    import functools
-
-    import skeleton.markersets as ms
     fig, mo, X, owner = _bench_figure(939)
     before = merge_fragments(X, repair_swaps=False)
     assert all(len({int(owner[f]) for f in g}) == 1 for g in before.groups)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
     # without the turning veto, step 4b mixes the two markers (the failure guarded against)
-    monkeypatch.setattr(ms, "_repair_cross",
-                        functools.partial(ms._repair_cross, turn_margin=np.inf))
-    mixed = [g for g in merge_fragments(X).groups if len({int(owner[f]) for f in g}) > 1]
-    assert {frozenset(int(owner[f]) for f in g) for g in mixed} == {frozenset((11, 12))}
+    assert _mixed_with(monkeypatch, X, owner, "_repair_cross",
+                       turn_margin=np.inf) == [[11, 12], [11, 12]]
     assert fig.marker_segment[11] == fig.marker_segment[12]
     assert (fig.marker_segment == fig.marker_segment[11]).sum() == 2
 
@@ -406,18 +413,12 @@ def test_cross_exchange_never_puts_a_piece_off_a_rigid_body(monkeypatch):
     only (gain 1.06 against the margin of 1). The piece was rigid to its own marker's
     one-body partner (0.9 x s0) and is 4.1 x s0 off rigid to that of the new marker; such a
     move is not made."""
-    import functools
-
-    import skeleton.markersets as ms
     fig, mo, X, owner = _bench_figure(379)
     before = merge_fragments(X, repair_swaps=False)
     assert all(len({int(owner[f]) for f in g}) == 1 for g in before.groups)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
     # without the veto, step 4b mixes markers of two segments (the failure guarded against)
-    monkeypatch.setattr(ms, "_repair_cross",
-                        functools.partial(ms._repair_cross, body_veto=False))
-    mixed = [g for g in merge_fragments(X).groups if len({int(owner[f]) for f in g}) > 1]
-    assert [sorted({int(owner[f]) for f in g}) for g in mixed] == [[18, 27]]
+    assert _mixed_with(monkeypatch, X, owner, "_repair_cross", body_veto=False) == [[18, 27]]
     assert fig.marker_segment[18] != fig.marker_segment[27]
 
 
@@ -430,15 +431,11 @@ def test_piece_off_a_rigid_body_moves_to_the_marker_it_fits(monkeypatch, k, mark
     is rigid to the piece) and stayed. Step 4c now counts such a one-body partner, or one
     at another distance, as proof that the piece is not that marker; it moves to the one
     marker it fits (its own: 1.0-1.2 x s0)."""
-    import functools
-
-    import skeleton.markersets as ms
     fig, mo, X, owner = _bench_figure(k)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
     # without one-body partners as proof, the piece stays (the failure guarded against)
-    monkeypatch.setattr(ms, "_move_misfits", functools.partial(ms._move_misfits, one_body=0.0))
-    mixed = [g for g in merge_fragments(X).groups if len({int(owner[f]) for f in g}) > 1]
-    assert [sorted({int(owner[f]) for f in g}) for g in mixed] == [sorted((marker, other))]
+    assert _mixed_with(monkeypatch, X, owner, "_move_misfits",
+                       one_body=0.0) == [sorted((marker, other))]
     assert fig.marker_segment[marker] != fig.marker_segment[other]
 
 
