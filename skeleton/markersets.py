@@ -822,14 +822,6 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
             ok[[a, b]] = False
             return np.flatnonzero(ok)
 
-        def body_sd(kept, f, ex):
-            """the distance sd of fragment f to the tracks that move as one body with the
-            fragments ``kept`` (``_one_body``) and are seen with it"""
-            if not kept:
-                return np.zeros(0)
-            sd = sd_of(f)[_one_body(vis, P, sd_of, kept, ex, one_body * s0, voter_frames)]
-            return sd[~np.isnan(sd)]
-
         def displaced(g, new, h, ex):
             """a fragment moves from marker h into marker g (``new``: g's fragments after
             the exchange) off a body it was on: rigid (sd <= ``rigid`` x s0) to every track
@@ -845,9 +837,11 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
             for f in new:
                 if f in g:
                     continue
-                home = body_sd(stay, f, ex)
-                if (home.size and (home <= rigid * s0).all()
-                        and (body_sd(kept, f, ex) > rigid * s0).any()):
+                _, home = _body_sds(vis, P, sd_of, f, stay, ex, one_body * s0, voter_frames)
+                if not (home.size and (home <= rigid * s0).all()):
+                    continue
+                _, there = _body_sds(vis, P, sd_of, f, kept, ex, one_body * s0, voter_frames)
+                if (there > rigid * s0).any():
                     return True
             return False
 
@@ -956,19 +950,26 @@ def _one_body(vis, P, sd_of, kept, excl, body_sd, body_frames) -> np.ndarray:
                    >= body_frames)
 
 
+def _body_sds(vis, P, sd_of, f, kept, excl, body_sd, body_frames) -> tuple:
+    """(js, sd): the tracks moving as one body with the fragments ``kept`` (``_one_body``)
+    that are seen with fragment ``f``, and f's distance sd to each (empty without kept)."""
+    if not kept:
+        return np.zeros(0, int), np.zeros(0)
+    sd = sd_of(f)
+    js = np.flatnonzero(_one_body(vis, P, sd_of, kept, excl, body_sd, body_frames)
+                        & ~np.isnan(sd))
+    return js, sd[js]
+
+
 def _off_body(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, body_frames) -> bool:
     """Fragment ``f`` cannot be the marker of the fragments ``kept``: a track of P (not in
     ``excl``) that moves as one body with them (sd <= ``body_sd`` to each it is seen with,
     over >= ``body_frames`` frames) is not rigid to f (sd > ``rigid_sd``) or sits at another
     distance from it (``_jump_ss`` of kept + [f] above that of kept by ``bound``)."""
-    if not kept:
-        return False
-    body = _one_body(vis, P, sd_of, kept, excl, body_sd, body_frames)
-    sd = sd_of(f)
-    js = np.flatnonzero(body & ~np.isnan(sd))
+    js, sd = _body_sds(vis, P, sd_of, f, kept, excl, body_sd, body_frames)
     if js.size == 0:
         return False
-    if (sd[js] > rigid_sd).any():
+    if (sd > rigid_sd).any():
         return True
     ss = _jump_ss(X, vis, kept + [f], P[:, js])
     return bool((ss(kept + [f]) - ss(kept) > bound).any())
