@@ -16,13 +16,14 @@ import argparse
 import sys
 from pathlib import Path
 
-from calibration.camera import Camera
-from calibration.rig_io import load_rig, save_rig
-from calibration.wand import calibrate_wand
-from reconstruct.app import load_detections
 
 
 def _wand(args) -> int:
+    from calibration.camera import Camera
+    from calibration.rig_io import load_rig, save_rig
+    from calibration.wand import calibrate_wand
+    from reconstruct.app import load_detections
+
     rig0 = None
     if args.intrinsics:
         rig0 = load_rig(args.intrinsics)
@@ -77,6 +78,7 @@ def _intrinsics(args) -> int:
 
     from calibration.camera import Rig
     from calibration.intrinsics import calibrate_charuco, calibrate_chessboard
+    from calibration.rig_io import save_rig
     try:
         board = _parse_board(args.board)
     except ValueError as e:
@@ -126,8 +128,10 @@ def _reference(args):
 
 
 def _world(args) -> int:
+    from calibration.rig_io import load_rig, save_rig
     from calibration.static_markers import static_points
     from calibration.world import align_floor, align_world
+    from reconstruct.app import load_detections
     rig = load_rig(args.calibration)
     modes = sum(bool(m) for m in (args.l_frame, args.reference_mm, args.floor))
     if modes != 1:
