@@ -91,8 +91,7 @@ def relink_by_stars(traj: np.ndarray, members, parents, joint_starts, cost: np.n
                         alt = fit(tri, hub, {kept: J(hub, b), moved: J(b, moved)})
                         if not (cur.ok and alt.ok):
                             continue
-                        var = max(min(cur.ssq_m2, alt.ssq_m2) / cur.n_res, VAR_FLOOR_M2)
-                        m = (cur.ssq_m2 - alt.ssq_m2) / var
+                        m = _margin(cur, alt)
                         if (m > margin and cur.n_iter >= MAX_ITER
                                 and (tri, b, hub) not in refit):
                             # before a move decided against a current star that stopped
@@ -103,9 +102,7 @@ def relink_by_stars(traj: np.ndarray, members, parents, joint_starts, cost: np.n
                                                 {hub: alt.joints[b], moved: alt.joints[moved]})
                             if again.ok and again.ssq_m2 < cur.ssq_m2:
                                 cache[tri, b] = cur = again
-                                var = max(min(cur.ssq_m2, alt.ssq_m2) / cur.n_res,
-                                          VAR_FLOOR_M2)
-                                m = (cur.ssq_m2 - alt.ssq_m2) / var
+                                m = _margin(cur, alt)
                         if m > margin and (best is None or m > best[0]):
                             best = (m, moved, b, hub)
         if best is None:
@@ -117,3 +114,10 @@ def relink_by_stars(traj: np.ndarray, members, parents, joint_starts, cost: np.n
         say(f"star re-link: segment {moved} from {old} to {new} (its star fits "
             f"{m:.0f}x the residual variance better)")
     return parents, moves
+
+
+def _margin(cur, alt) -> float:
+    """How much better ``alt`` fits than ``cur``: the drop in the sum of squares in units
+    of the better fit's residual variance (floored at ``VAR_FLOOR_M2``)."""
+    var = max(min(cur.ssq_m2, alt.ssq_m2) / cur.n_res, VAR_FLOOR_M2)
+    return (cur.ssq_m2 - alt.ssq_m2) / var
