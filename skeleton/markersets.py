@@ -132,6 +132,25 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    (524: right 27.5 deg, other 176.4; 719: 92.3 and 228.7); the rigidity keeps apart
    markers of two segments rigid where seen together (figure 403: m9 and m19 at 3.0 s0,
    with a piece of m9's partner m8: both splits 9.7 s0).
+8. joint spheres (``_sphere_exchanges``): a marker turns about its segment's joint with a
+   neighbouring segment, so in that segment's frame it stays on a sphere about the joint.
+   Two markers moving as one body (sd <= 1.5 x s0 over >= 100 frames) that no earlier step
+   could tell apart (a 2-marker segment whose markers are both hidden across one gap,
+   figures 221 and 718: no partner, and the direction turned too far to judge) are told by
+   it. A body is three or more tracks moving as one body with each other (its frame: Kabsch
+   onto their positions in the first frame all are seen); a pair's every overlap-free
+   exchange of a run of fragments (each partition once) is fitted, in the frame of every
+   body that holds neither, by one sphere centre (the joint, common to both markers) and a
+   radius per marker (Kasa's algebraic fit), for the current assignment and the exchanged
+   one. A body judges when the better assignment fits within ``fit_rms`` (1.5) x s0 rms (a
+   neighbour across one joint; bodies further away fit worse). The exchange is made when
+   on some judge the exchanged pieces (the smaller side) sit >= ``min_misfit`` (2) residual
+   sds off rms under the current assignment and under half that under the exchanged one,
+   and no judge finds the reverse; the largest gain in the sum of squares first, one per
+   round. Designed on figures 0-199 (all merged right by steps 1-7; 227 exchanges a judge
+   preferred by up to 241 residual variances were effects of 1.32 sd at most, 1.4x the
+   exchanged fit) and the failures 221, 718, 1056, 1097 (2.78-16.7 sd, 3.0-17x the
+   exchanged fit).
 
 The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
 (1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on
@@ -311,7 +330,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6 and 7 of the module docstring
+    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7 and 8 of the module docstring
     (``swap_margin``: the least gain in the rigidity cost for which fragments change
     marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
@@ -363,7 +382,8 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
             res = _regroup(X, res, nxt)
         groups = _join_by_partners(X, [list(g) for g in res.groups], min_frames, first.n_min)
         groups = _two_of_three(X, groups, min_frames, first.n_min)
-        if len(groups) < res.n_markers:
+        groups, exchanged = _sphere_exchanges(X, groups, min_frames)
+        if len(groups) < res.n_markers or exchanged:
             res = _with_groups(X, res, groups)
     return res
 
@@ -1182,3 +1202,138 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
     return MarkerSets(positions=out, groups=tuple(tuple(int(keep[m]) for m in ms)
                                                   for ms in groups),
                       dropped=dropped, n_min=n_min, distance=D)
+
+
+def _bodies(one, S) -> list:
+    """Sets (sorted tuples, >= 3) of tracks that all move as one body with each other
+    (``one``: (M, M) bool): each track with its one-body partners taken in order of sd
+    while they move as one body with every track taken so far."""
+    out = set()
+    for m in range(one.shape[0]):
+        body = [m]
+        for j in sorted(np.flatnonzero(one[m]), key=lambda j: S[m, j]):
+            if one[j, body].all():
+                body.append(int(j))
+        if len(body) >= 3:
+            out.add(tuple(sorted(body)))
+    return sorted(out)
+
+
+def _body_frame(P, body) -> tuple:
+    """(frames, R, t): the frames all tracks of ``body`` are seen and, in each, the rigid
+    motion y = R x + t taking world points into the body's frame (its tracks' positions in
+    the first of those frames)."""
+    fr = np.flatnonzero(~np.isnan(P[:, list(body), 0]).any(1))
+    src = P[fr][:, list(body)]
+    R, t = _kabsch_batch(src, np.broadcast_to(src[:1], src.shape))
+    return fr, R, t
+
+
+def _common_sphere(Ys) -> list:
+    """Residuals |y - c| - r_i of each point set in ``Ys`` about one centre c with a radius
+    per set (Kasa's algebraic fit, shared centre)."""
+    n = len(Ys)
+    A = np.zeros((sum(len(y) for y in Ys), 3 + n))
+    A[:, :3] = 2 * np.concatenate(Ys)
+    i = 0
+    for k, y in enumerate(Ys):
+        A[i:i + len(y), 3 + k] = 1.0
+        i += len(y)
+    b = np.concatenate([(y ** 2).sum(1) for y in Ys])
+    sol = np.linalg.lstsq(A, b, rcond=None)[0]
+    c = sol[:3]
+    return [np.linalg.norm(y - c, axis=1) - np.sqrt(max(sol[3 + k] + c @ c, 0.0))
+            for k, y in enumerate(Ys)]
+
+
+def _sphere_verdict(pts, ga, gb, na, nb, moved):
+    """(sum of squares kept, exchanged, mean square of the moved pieces kept, exchanged,
+    points) of two markers' fragments ``pts`` (fragment -> points in a body's frame) fitted
+    on one common sphere centre, as ``ga``/``gb`` (current) and ``na``/``nb`` (exchanged);
+    None where a marker has < 50 points or the moved pieces < 5."""
+    out = []
+    for x, y in ((ga, gb), (na, nb)):
+        ya = [pts[f] for f in x]
+        yb = [pts[f] for f in y]
+        if sum(map(len, ya)) < 50 or sum(map(len, yb)) < 50:
+            return None
+        ra, rb = _common_sphere([np.concatenate(ya), np.concatenate(yb)])
+        res = np.r_[ra, rb]
+        m = np.concatenate([np.full(len(pts[f]), f in moved) for f in list(x) + list(y)])
+        out.append((float(res @ res), float(res[m] @ res[m]), int(m.sum()), res.size))
+    (sk, pk, nd, n), (sm, pm, _, _) = out
+    if nd < 5:
+        return None
+    return sk, sm, pk / nd, pm / nd, n
+
+
+def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_rms=1.5,
+                      min_misfit=2.0, max_rounds=3) -> tuple[list, bool]:
+    """Step 8 (module docstring): exchanges between two markers moving as one body judged
+    by the sphere each keeps about its joint in the frame of a neighbouring body. Returns
+    the groups and whether any changed."""
+    vis = ~np.isnan(X[..., 0])
+    groups = [list(g) for g in groups]
+    P = _tracks(X, groups)
+    S, s0 = _pair_sd(P, min_frames)
+    if not s0 > 0:
+        return groups, False
+    span = {f: (int(np.flatnonzero(vis[:, f])[0]), int(np.flatnonzero(vis[:, f])[-1]))
+            for g in groups for f in g}
+    changed = False
+    for _ in range(max_rounds):
+        seen = ~np.isnan(P[..., 0])
+        common = seen.T.astype(np.int64) @ seen.astype(np.int64)
+        with np.errstate(invalid="ignore"):
+            one = (S <= body_sd * s0) & (common >= body_frames)
+        frames = {b: _body_frame(P, b) for b in _bodies(one, S)}
+        frames = {b: v for b, v in frames.items() if v[0].size >= body_frames}
+        best = None
+        for a, b in zip(*np.nonzero(np.triu(one, 1))):
+            ga, gb = groups[a], groups[b]
+            if len(ga) + len(gb) < 3:
+                continue
+            done = set()
+            for na, nb in _cross_alternatives(span, ga, gb):
+                key = frozenset((frozenset(na), frozenset(nb)))
+                if key in done:
+                    continue
+                done.add(key)
+                moved = (set(ga) - set(na)) | (set(gb) - set(nb))
+                rest = set(ga + gb) - moved
+                if (sum(span[f][1] - span[f][0] for f in moved)
+                        > sum(span[f][1] - span[f][0] for f in rest)):
+                    moved = rest           # the smaller side is the exchanged piece
+                gain, veto = 0.0, False
+                for body, (fr, R, t) in frames.items():
+                    if a in body or b in body:
+                        continue
+                    pts = {}
+                    for f in ga + gb:
+                        x = X[fr, f]
+                        ok = ~np.isnan(x[:, 0])
+                        pts[f] = np.einsum("bij,bj->bi", R[ok], x[ok]) + t[ok]
+                    v = _sphere_verdict(pts, ga, gb, na, nb, moved)
+                    if v is None:
+                        continue
+                    sk, sm, pk, pm, n = v
+                    var = min(sk, sm) / (n - 5)
+                    if not var <= (fit_rms * s0) ** 2 * n / (n - 5):
+                        continue                 # not a neighbour across one joint
+                    kp, mv = np.sqrt(pk / var), np.sqrt(pm / var)
+                    if kp >= min_misfit and kp >= min_misfit * mv:
+                        gain = max(gain, (sk - sm) / var)
+                    if mv >= min_misfit and mv >= min_misfit * kp:
+                        veto = True
+                if gain > 0 and not veto and (best is None or gain > best[0]):
+                    best = (gain, a, b, na, nb)
+        if best is None:
+            break
+        _, a, b, na, nb = best
+        groups[a], groups[b] = na, nb
+        P[:, a], P[:, b] = _tracks(X, [na, nb]).transpose(1, 0, 2)
+        for m in (a, b):
+            S[m] = S[:, m] = _sd_to(P, P[:, m], min_frames)
+            S[m, m] = np.nan
+        changed = True
+    return groups, changed

@@ -449,3 +449,20 @@ def test_cross_exchange_may_move_a_piece_already_off_its_body():
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert len(mixed) == 3                      # the failure this test guards against
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+@pytest.mark.parametrize("k, pair", [(221, [21, 22]), (718, [41, 42])])
+def test_two_markers_hidden_together_are_told_apart_by_their_joint_spheres(monkeypatch, k,
+                                                                           pair):
+    """Benchmark figures 221 and 718 (failing since stop 16 / stop 19): both markers of a
+    2-marker segment are hidden across one gap and an end piece of one (221: its last 41
+    frames; 718: its first 17) joins the other. No track is rigid to them (no partner) and
+    the direction between them turned too far across the gap to judge. In the frame of the
+    neighbouring segment each marker stays on a sphere about their joint: step 8 moves the
+    piece back to the marker whose sphere it lies on."""
+    fig, mo, X, owner = _bench_figure(k)
+    seg = fig.marker_segment
+    assert seg[pair[0]] == seg[pair[1]] and (seg == seg[pair[0]]).sum() == 2
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    # without step 8 the two markers stay mixed (the failure guarded against)
+    assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", max_rounds=0) == [pair]
