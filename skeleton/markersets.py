@@ -581,6 +581,16 @@ def _pair_sd(P, min_frames) -> tuple[np.ndarray, float]:
         return S, float(np.nanmedian(np.nanmin(S, 1)))
 
 
+def _exchange(X, groups, P, S, a, b, ga, gb, min_frames) -> None:
+    """Give markers ``a`` and ``b`` the fragments ``ga`` and ``gb``, in place: their groups,
+    their tracks in ``P`` and their rows and columns of the sd matrix ``S``."""
+    groups[a], groups[b] = list(ga), list(gb)
+    P[:, a], P[:, b] = _tracks(X, [ga, gb]).transpose(1, 0, 2)
+    for m in (a, b):
+        S[m] = S[:, m] = _sd_to(P, P[:, m], min_frames)
+        S[m, m] = np.nan
+
+
 def _turning(X, vis, ga, gb, ends=5) -> float:
     """Sum over the changes of fragment (in either marker, over their common frames) of the
     angle (rad) between the direction from marker a to marker b before and after: the mean
@@ -707,12 +717,7 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                     found = _best_by_turning(X, vis, groups[a], groups[b], alts,
                                              turn_margin)
                     if found is not None:
-                        ga, gb = found
-                        groups[a], groups[b] = ga, gb
-                        P[:, a], P[:, b] = _tracks(X, [ga, gb]).transpose(1, 0, 2)
-                        for m in (a, b):
-                            S[m] = S[:, m] = _sd_to(P, P[:, m], min_frames)
-                            S[m, m] = np.nan
+                        _exchange(X, groups, P, S, a, b, *found, min_frames)
                         changed = True
                     continue
                 Po = P[:, others]
@@ -722,19 +727,16 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                     pa, pb = _tracks(X, [ga, gb]).transpose(1, 0, 2)
                     c = cost(_sd_to(Po, pa, min_frames)) + cost(_sd_to(Po, pb, min_frames))
                     if c < best:
-                        best, found = c, (ga, gb, pa, pb)
+                        best, found = c, (ga, gb)
                 if found is None and strict.size:
                     # a short piece barely moves the sd: the jumps between fragments instead
                     ga = _best_by_jumps(X, vis, groups[a], groups[b], alts, P[:, strict],
                                         jump_margin * s0 ** 2)
                     if ga is not None:
-                        found = (*ga, *_tracks(X, list(ga)).transpose(1, 0, 2))
+                        found = ga
                 if found is None:
                     continue
-                groups[a], groups[b], P[:, a], P[:, b] = found
-                for m in (a, b):
-                    S[m] = S[:, m] = _sd_to(P, P[:, m], min_frames)
-                    S[m, m] = np.nan
+                _exchange(X, groups, P, S, a, b, *found, min_frames)
                 changed = True
         if not changed:
             break
@@ -1329,11 +1331,6 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                     best = (gain, a, b, na, nb)
         if best is None:
             break
-        _, a, b, na, nb = best
-        groups[a], groups[b] = na, nb
-        P[:, a], P[:, b] = _tracks(X, [na, nb]).transpose(1, 0, 2)
-        for m in (a, b):
-            S[m] = S[:, m] = _sd_to(P, P[:, m], min_frames)
-            S[m, m] = np.nan
+        _exchange(X, groups, P, S, *best[1:], min_frames)
         changed = True
     return groups, changed
