@@ -150,7 +150,13 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    round. Designed on figures 0-199 (all merged right by steps 1-7; 227 exchanges a judge
    preferred by up to 241 residual variances were effects of 1.32 sd at most, 1.4x the
    exchanged fit) and the failures 221, 718, 1056, 1097 (2.78-16.7 sd, 3.0-17x the
-   exchanged fit).
+   exchanged fit). ``/tmp`` screen, one ``merge_fragments`` per figure as
+   ``bench_markersets.py`` builds them: figures 0-999 991 -> 993 of 1000 (fixed 221, 718),
+   1000-1119 116 -> 118 (fixed 1056, 1097), none lost; held out, first run 1120-1239 (the
+   code before step 8 and this one): 116 -> 117 of 120 (fixed 1126, none lost). It cannot
+   judge a 2-marker segment whose neighbours have fewer than three markers (157: its only
+   neighbour has two; 1210), nor pieces of two segments (569, 1026, 1037, 1183, 1239: the
+   test compares two markers on one centre; 569's siblings share no body of >= 3 markers).
 
 The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
 (1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on
