@@ -153,7 +153,9 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    exchanged fit). ``/tmp`` screen, one ``merge_fragments`` per figure as
    ``bench_markersets.py`` builds them: figures 0-999 991 -> 993 of 1000 (fixed 221, 718),
    1000-1119 116 -> 118 (fixed 1056, 1097), none lost; held out, first run 1120-1239 (the
-   code before step 8 and this one): 116 -> 117 of 120 (fixed 1126, none lost). It cannot
+   code before step 8 and this one): 116 -> 117 of 120 (fixed 1126, none lost); 1240-1359:
+   117 and 117, identical per figure (1304 and 1306 are same-segment swaps it measured below
+   its thresholds: 2.17 sd at 1.99x the exchanged fit, and 1.34 sd). It cannot
    judge a 2-marker segment whose neighbours have fewer than three markers (157: its only
    neighbour has two; 1210), nor pieces of two segments (569, 1026, 1037, 1183, 1239: the
    test compares two markers on one centre; 569's siblings share no body of >= 3 markers).
