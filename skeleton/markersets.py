@@ -770,6 +770,16 @@ def _run_exchanges(frs, ga, free) -> list:
     return out
 
 
+def _spans(vis, groups) -> dict:
+    """fragment -> (first, last) frame it is seen in, for every fragment of ``groups``."""
+    out = {}
+    for g in groups:
+        for f in g:
+            seen = np.flatnonzero(vis[:, f])
+            out[f] = (int(seen[0]), int(seen[-1]))
+    return out
+
+
 def _cross_alternatives(span: dict, ga, gb):
     """``_run_exchanges`` of two markers' fragments, overlap judged on their spans
     (``span``: fragment -> (first, last) frame; cheaper than frame by frame)."""
@@ -805,8 +815,7 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
     voters' frames only; the jump test did not block it (its two judges are markers of the
     next segment, rigid to both markers), and the turning went 40.5 -> 172.6 deg."""
     vis = ~np.isnan(X[..., 0])
-    span = {f: (int(np.flatnonzero(vis[:, f])[0]), int(np.flatnonzero(vis[:, f])[-1]))
-            for g in groups for f in g}
+    span = _spans(vis, groups)
 
     def cost(sd):
         return float(np.nansum(np.log1p(sd / s0)))
@@ -1288,8 +1297,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
     S, s0 = _pair_sd(P, min_frames)
     if not s0 > 0:
         return groups, False
-    span = {f: (int(np.flatnonzero(vis[:, f])[0]), int(np.flatnonzero(vis[:, f])[-1]))
-            for g in groups for f in g}
+    span = _spans(vis, groups)
     changed = False
     for _ in range(max_rounds):
         seen = ~np.isnan(P[..., 0])
@@ -1298,6 +1306,16 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
             one = (S <= body_sd * s0) & (common >= body_frames)
         frames = {b: _body_frame(P, b) for b in _bodies(one, S)}
         frames = {b: v for b, v in frames.items() if v[0].size >= body_frames}
+        in_body = {}                  # (body, fragment) -> its points in the body's frame
+
+        def points(body, f):
+            if (body, f) not in in_body:
+                fr, R, t = frames[body]
+                x = X[fr, f]
+                ok = ~np.isnan(x[:, 0])
+                in_body[body, f] = np.einsum("bij,bj->bi", R[ok], x[ok]) + t[ok]
+            return in_body[body, f]
+
         best = None
         for a, b in zip(*np.nonzero(np.triu(one, 1))):
             ga, gb = groups[a], groups[b]
@@ -1315,14 +1333,10 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                         > sum(span[f][1] - span[f][0] for f in rest)):
                     moved = rest           # the smaller side is the exchanged piece
                 gain, veto = 0.0, False
-                for body, (fr, R, t) in frames.items():
+                for body in frames:
                     if a in body or b in body:
                         continue
-                    pts = {}
-                    for f in ga + gb:
-                        x = X[fr, f]
-                        ok = ~np.isnan(x[:, 0])
-                        pts[f] = np.einsum("bij,bj->bi", R[ok], x[ok]) + t[ok]
+                    pts = {f: points(body, f) for f in ga + gb}
                     v = _sphere_verdict(pts, ga, gb, na, nb, moved)
                     if v is None:
                         continue
