@@ -23,7 +23,7 @@ def test_demo_accuracy_against_truth(demo):
     assert res.blob_error_px < 0.05
     assert res.blob_recall > 0.9
     # wand calibration then L-frame alignment: sub-millimetre camera centres
-    assert res.calib_centre_error_mm < 2.0
+    assert res.calib_centre_error_mm < 1.0          # 0.64 mm measured (seed 3, 400 frames)
     assert res.calib_reproj_px < 0.1
     # most markers seen by >= 2 cameras are reconstructed, within a millimetre
     assert res.reconstructed_fraction > 0.9
@@ -64,5 +64,7 @@ def test_demo_skeleton_outputs(demo):
     root = bvhio.readAsHierarchy(str(out / "skeleton.bvh"))
     n_joints = len(root.layout())
     assert n_joints >= res.n_segments
-    assert 10 <= res.n_segments <= 20          # the figure has 15 body segments
-    assert res.marker_deviation_mm < 2.0       # fitted vs measured markers
+    assert res.n_segments == 15                # the figure's body segments
+    # against hw_sim's true joint centres: 0.39 mm measured (seed 3, 120 frames)
+    assert res.joint_error_mm < 1.0
+    assert res.marker_deviation_mm < 0.3       # fitted vs measured markers: 0.10 mm measured

@@ -66,7 +66,7 @@ def test_run_skeleton_on_tracker_fragments(figure):
     segmap = segment_map(fig, lab)
     assert segmap is not None and run.rigid.n_segments == fig.n_segments
     err = joint_errors(fig, mo, run.rigid.parents, run.fit.joint_centres, segmap)
-    assert np.nanmedian(err) < 1e-6
+    assert np.isfinite(err).mean() > 0.9 and np.nanmax(err) < 1e-8   # exact where fitted
 
 
 @pytest.mark.filterwarnings("ignore::UserWarning")
@@ -93,5 +93,5 @@ def test_cli_reports_a_junction(tmp_path, capsys):
     names = {f"seg{segmap[s]}" for s in (p, a, b)}
     found = [j for j in d["extra"]["junctions"] if set(j["segments"]) == names]
     assert len(found) == 1 and found[0]["hub"] == f"seg{segmap[p]}"
-    assert found[0]["joint_spread_m"] < 2e-3
+    assert found[0]["joint_spread_m"] < 1e-6          # coincident joints, no noise
     assert "junction: " in out.out and "junction: " in out.err

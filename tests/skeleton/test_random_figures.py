@@ -15,7 +15,7 @@ from tests.skeleton._figures import segment_map, solver_joint_errors, topology_e
 N_FIGURES = 50
 N_FRAMES = 600
 NOISE_M = 1e-3
-MIN_EXACT_CLEAN = 49        # topology exactly right, noise-free
+MIN_EXACT = 49              # topology exactly right (issue 6, point 6)
 MEDIAN_CLEAN_M = 0.5e-3     # median joint-centre error, noise-free
 MEDIAN_NOISY_M = 3e-3       # median joint-centre error, 1 mm marker noise
 EQUIV_TOL_FACTOR = 3.0      # equivalence metric: coincident joints within 3x the median error
@@ -48,20 +48,18 @@ def test_fifty_random_figures_noise_free():
         ok, e = evaluate(fig, mo, solve_skeleton(mo.markers, mo.rate_hz, rng=0))
         exact += ok
         errs += e
-    assert exact >= MIN_EXACT_CLEAN
+    assert exact >= MIN_EXACT
     assert np.median(errs) <= MEDIAN_CLEAN_M
 
 
 @pytest.mark.slow
 def test_fifty_random_figures_noisy():
-    """1 mm noise: the joint-centre median bound (over figures whose topology is right),
-    then the exact-topology target, which does not hold yet: it is reported as xfail with
-    the measured count, next to the count of solved trees that are kinematically equivalent
-    to the truth (``topology_equivalent``: edges differ only inside a group of sibling
-    joints within 3x the median joint error; a reported number, not the target). Most
-    failures are siblings whose joints on the parent lie within a few mm of each other (a
-    three-way junction: all three pairs fit a joint within the noise; skeleton.junctions
-    picks the hub by a motion prior)."""
+    """1 mm noise: the joint-centre median bound (over figures whose topology is right) and
+    the exact-topology target. Measured on this code: 49/50 exact (figure 4 fails: siblings
+    whose joints on the parent lie within the noise; skeleton.junctions picks the hub by a
+    motion prior), median joint error 0.76 mm. The count of solved trees kinematically
+    equivalent to the truth (``topology_equivalent``: edges differ only inside a group of
+    sibling joints within 3x the median joint error) is printed, not asserted."""
     errs, exact, kept = [], 0, []
     for k, fig, mo in figures():
         noisy = mo.markers + np.random.default_rng(k).normal(0, NOISE_M, mo.markers.shape)
@@ -73,8 +71,6 @@ def test_fifty_random_figures_noisy():
     assert np.median(errs) <= MEDIAN_NOISY_M
     tol = EQUIV_TOL_FACTOR * float(np.median(errs))
     equiv = sum(topology_equivalent(f, m, r, tol) for f, m, r in kept)
-    assert equiv >= exact
-    if exact < MIN_EXACT_CLEAN:
-        pytest.xfail(f"noisy topology exact on {exact}/{N_FIGURES} < {MIN_EXACT_CLEAN} "
-                     f"(kinematically equivalent within {tol * 1e3:.2f} mm: "
-                     f"{equiv}/{N_FIGURES})")
+    print(f"noisy topology exact on {exact}/{N_FIGURES}, kinematically equivalent within "
+          f"{tol * 1e3:.2f} mm on {equiv}/{N_FIGURES}")
+    assert exact >= MIN_EXACT

@@ -79,7 +79,8 @@ def test_deviation_table_exact_and_noisy():
     dev = np.linalg.norm(noisy - fit.fitted_markers, axis=2)
     np.testing.assert_allclose(tab.mean_m, np.nanmean(dev, 0))
     assert tab.frames[0] == 260
-    assert NOISE_M < tab.overall_mean_m < 3 * NOISE_M
+    # 1 mm isotropic noise: |noise| averages 1.6 mm; the fit absorbs a little (1.42 mm)
+    assert NOISE_M < tab.overall_mean_m < 1.6 * NOISE_M
     text = tab.format()
     assert fig.marker_names[0] in text and "Average deviation" in text
     s = summary_table(rig, tab)

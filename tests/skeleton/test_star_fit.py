@@ -94,6 +94,8 @@ def test_star_reports_its_fitted_joints_on_the_fitted_frames():
         fig, mo, p, a, b, _ = _siblings(seed, 0.02, 0.2)
         if fig.joint_types[a] == fig.joint_types[b] == "ball":   # a hinge's centre is free
             break                                                # along its axis
+    else:
+        raise AssertionError("no siblings with two ball joints")
     noisy = mo.markers + np.random.default_rng(4).normal(0, 1e-3, mo.markers.shape)
     data = lowpass(noisy, mo.rate_hz)
     off = np.array([0.015, 0.0, 0.0])
