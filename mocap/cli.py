@@ -32,7 +32,7 @@ def main(argv=None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (ValueError, TypeError, FileNotFoundError) as e:
+    except (ValueError, TypeError, OSError) as e:   # OSError: missing, unwritable paths
         print(f"mocap {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

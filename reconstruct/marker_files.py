@@ -92,6 +92,8 @@ def write_c3d(data: MarkerData, path) -> Path:
                    point_units="mm  ")
     mm = data.positions * 1000.0
     T, M, _ = mm.shape
+    if T == 0:
+        raise ValueError(f"{path}: no frames to write (a C3D file holds at least one)")
     missing = np.isnan(mm[..., 0])
     frames = []
     empty_analog = np.zeros((0, 0), dtype=np.float32)
@@ -104,8 +106,7 @@ def write_c3d(data: MarkerData, path) -> Path:
             res = np.zeros(M)
         pts[:, 3] = np.where(missing[t], -1.0, np.maximum(res, 0.0))
         frames.append((pts, empty_analog))
-    if frames:
-        w.add_frames(frames)
+    w.add_frames(frames)
     _set_point_labels(w, list(data.labels))
     if data.first_frame != 1:
         w.set_start_frame(int(data.first_frame))
@@ -153,13 +154,28 @@ def _point_labels(r) -> list[str]:
     return out
 
 
+def _input_file(path) -> Path:
+    """``path`` as a Path, or a clear error: missing, or not a regular file."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"marker file not found: {path}")
+    if not path.is_file():
+        raise ValueError(f"{path}: not a file")
+    return path
+
+
+def _text_lines(path: Path) -> list[str]:
+    try:
+        return path.read_text().splitlines()
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a text marker file ({e.reason} at byte {e.start})") from e
+
+
 def read_c3d(path) -> MarkerData:
     """Read a C3D file's point data (any encoding the ``c3d`` package reads) into metres."""
     import c3d
 
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"marker file not found: {path}")
+    path = _input_file(path)
     with open(path, "rb") as h:
         try:
             with warnings.catch_warnings():   # a marker-only file has no analog data: normal
@@ -177,14 +193,24 @@ def read_c3d(path) -> MarkerData:
             raise ValueError(f"{path}: unknown POINT:UNITS {units!r}")
         labels = _point_labels(r)
         pos, res = [], []
-        for _, points, _analog in r.read_frames(copy=True):
-            p = np.array(points[:, :3], dtype=np.float64)
-            rr = np.array(points[:, 3], dtype=np.float64)
-            bad = rr < 0
-            p[bad] = np.nan
-            rr = np.where(bad, np.nan, rr)
-            pos.append(p)
-            res.append(rr)
+        with warnings.catch_warnings():
+            # the library warns and stops at an early end of file: counted below instead
+            warnings.filterwarnings("ignore", message="reached end of file")
+            for _, points, _analog in r.read_frames(copy=True):
+                p = np.array(points[:, :3], dtype=np.float64)
+                rr = np.array(points[:, 3], dtype=np.float64)
+                bad = rr < 0
+                p[bad] = np.nan
+                rr = np.where(bad, np.nan, rr)
+                pos.append(p)
+                res.append(rr)
+        short = r.frame_count - len(pos)
+        if short > 1:
+            raise ValueError(f"{path}: truncated C3D file: the header announces "
+                             f"{r.frame_count} frames, the data ends after {len(pos)}")
+        if short == 1:   # some exporters count one frame too many (last_frame inclusive)
+            warnings.warn(f"{path}: the header announces {r.frame_count} frames, the data "
+                          f"holds {len(pos)}: read {len(pos)}", stacklevel=2)
         rate = float(r.point_rate)
         first = int(r.first_frame)
     M = len(labels) if labels else (pos[0].shape[0] if pos else 0)
@@ -239,10 +265,8 @@ def write_trc(data: MarkerData, path) -> Path:
 
 
 def read_trc(path) -> MarkerData:
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"marker file not found: {path}")
-    lines = path.read_text().splitlines()
+    path = _input_file(path)
+    lines = _text_lines(path)
     if len(lines) < 5 or not lines[0].startswith("PathFileType"):
         raise ValueError(f"{path}: not a TRC file (first line {lines[0][:40] if lines else ''!r})")
     keys = lines[1].split("\t")
@@ -291,10 +315,8 @@ def write_csv(data: MarkerData, path) -> Path:
 
 
 def read_csv(path) -> MarkerData:
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"marker file not found: {path}")
-    lines = path.read_text().splitlines()
+    path = _input_file(path)
+    lines = _text_lines(path)
     rate, units = None, "mm"
     while lines and lines[0].startswith("#"):
         for tok in lines.pop(0)[1:].split():

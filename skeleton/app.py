@@ -57,15 +57,39 @@ def run_skeleton(markers, n_segments: int | None = None, rng=None, progress=None
     say = progress or (lambda msg: None)
     X = np.asarray(markers.positions, np.float64)
     labels = tuple(markers.labels)
+    if X.ndim != 3 or X.shape[2] != 3:
+        raise ValueError(f"positions.shape={X.shape}, expected (T, M, 3)")
+    if n_segments is not None and not (isinstance(n_segments, (int, np.integer))
+                                       and n_segments >= 1):
+        raise ValueError(f"n_segments={n_segments!r}, expected an integer >= 1")
+    seen = ~np.isnan(X[..., 0])
+    if not seen.any():
+        raise ValueError(f"no marker has a sample ({X.shape[1]} trajectories, "
+                         f"{X.shape[0]} frames)")
+    empty = [labels[m] for m in np.flatnonzero(~seen.any(0))]
+    if empty:
+        say(f"{len(empty)} of {X.shape[1]} trajectories have no sample and are left out: "
+            + ", ".join(empty[:8]) + (", ..." if len(empty) > 8 else ""))
+    if merge and X.shape[0] < min_frames:
+        raise ValueError(f"the recording has {X.shape[0]} frames, fewer than min_frames="
+                         f"{min_frames}: every trajectory would be dropped")
     sets = None
+    if not merge and empty:
+        keep = np.flatnonzero(seen.any(0))
+        X, labels = X[:, keep], tuple(labels[m] for m in keep)
     if merge:
         sets = merge_fragments(X, min_frames=min_frames)
         X = sets.positions
         labels = tuple(labels[g[0]] for g in sets.groups)
+        short = len(sets.dropped) - len(empty)
         say(f"marker sets: {len(markers.labels)} trajectories -> {sets.n_markers} markers "
-            f"({len(sets.dropped)} dropped as shorter than {min_frames} frames)")
+            f"({short} dropped as shorter than {min_frames} frames)")
     if X.shape[1] < 3:
-        raise ValueError(f"{X.shape[1]} markers after merging, need at least 3")
+        raise ValueError(f"{X.shape[1]} markers" + (" after merging" if merge else "")
+                         + ", need at least 3")
+    if n_segments is not None and n_segments > X.shape[1]:
+        raise ValueError(f"n_segments={n_segments}: more segments than the {X.shape[1]} "
+                         f"markers")
     extra = {} if star_margin is None else {"star_margin": star_margin}
     say("loading the solver's compiled fits (the first run in a checkout compiles them, "
         "~30 s)")

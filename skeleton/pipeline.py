@@ -134,7 +134,10 @@ def _path_max(top, cost: np.ndarray, i: int, j: int) -> float:
 
 
 def _tree_floor(cost: np.ndarray) -> float:
-    """The median cost of the minimum spanning tree's edges (what a true joint scores)."""
+    """The median cost of the minimum spanning tree's edges (what a true joint scores); NaN
+    for one segment (no edge)."""
+    if cost.shape[0] < 2:
+        return float("nan")
     return float(np.median(cost[tuple(skeleton_tree(cost).edges.T)]))
 
 

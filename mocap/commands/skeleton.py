@@ -20,6 +20,9 @@ def _run(args) -> int:
     def say(msg):
         print(f"[skeleton] {msg}", file=sys.stderr, flush=True)
 
+    _check_outputs(args.input, args.output, args.report)
+    if Path(args.output).suffix.lower() != ".bvh":
+        say(f"warning: {args.output} does not end in .bvh (a BVH file is written)")
     data = read_markers(Path(args.input))
     say(f"read {args.input}: {data.n_markers} trajectories, {data.n_frames} frames at "
         f"{data.rate_hz:g} Hz")
@@ -35,12 +38,38 @@ def _run(args) -> int:
     return 0
 
 
+def _check_outputs(input_path, output, report) -> None:
+    """Before any work: each output is a file path in an existing folder, and no two of
+    input, output and report are the same file (a BVH written over its own input)."""
+    taken = {"the input": Path(input_path).resolve()}
+    for flag, path in (("-o", output), ("--report", report)):
+        if path is None:
+            continue
+        full = Path(path).resolve()
+        if full.is_dir():
+            raise ValueError(f"{flag} {path} is a folder, expected a file path")
+        if not full.parent.is_dir():
+            raise ValueError(f"{flag} {path}: folder {full.parent} does not exist")
+        for name, other in taken.items():
+            if full == other:
+                raise ValueError(f"{flag} {path} is the same file as {name}")
+        taken[flag] = full
+
+
 def register(subparsers) -> None:
-    p = subparsers.add_parser("skeleton", help="skeleton (BVH) from unlabelled marker data")
+    p = subparsers.add_parser(
+        "skeleton", help="skeleton (BVH) from unlabelled marker data",
+        description="Merge trajectory fragments into markers, cluster them into rigid "
+                    "segments, fit the joints, build the tree and a rigid skeleton, fit it "
+                    "back to every frame; write a BVH (and the skeleton JSON with --report) "
+                    "and print the segment and per-marker deviation tables.",
+        epilog="example: mocap skeleton walk.c3d -o walk.bvh --report walk.json",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("input", help="marker file (.c3d, .trc or .csv)")
     p.add_argument("-o", "--output", required=True, help="BVH file to write")
-    p.add_argument("--segments", type=int, default=None,
-                   help="number of segments (default: chosen by the eigengap)")
+    p.add_argument("--segments", type=_positive_int, default=None,
+                   help="number of segments, 1 to the number of markers (default: chosen "
+                        "by the eigengap)")
     p.add_argument("--report", default=None, help="skeleton JSON to write")
     p.add_argument("--units", choices=("m", "cm", "mm"), default="m", help="BVH length unit")
     p.add_argument("--min-frames", type=int, default=10,
@@ -49,7 +78,8 @@ def register(subparsers) -> None:
                    help="trust the file's marker ids (skip merging fragments)")
     p.add_argument("--closed-form", action="store_true",
                    help="keep the thesis' closed-form fit (skip the whole-skeleton IK)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the randomised steps (spectral clustering, multi-starts)")
     p.add_argument("--workers", type=_positive_int, default=None,
                    help="processes for the segment-pair joint costs (default: every CPU)")
     p.set_defaults(func=_run)

@@ -95,3 +95,63 @@ def test_cli_reports_a_junction(tmp_path, capsys):
     assert len(found) == 1 and found[0]["hub"] == f"seg{segmap[p]}"
     assert found[0]["joint_spread_m"] < 1e-6          # coincident joints, no noise
     assert "junction: " in out.out and "junction: " in out.err
+
+
+def test_cli_refuses_bad_paths_before_any_work(tmp_path, capsys, figure):
+    """Output checks come first: a BVH never overwrites its input, a missing folder or a
+    folder as output is refused before the solve (and before any output is written)."""
+    fig, mo = figure
+    src = write_markers(MarkerData(positions=mo.markers, labels=fig.marker_names,
+                                   rate_hz=mo.rate_hz), tmp_path / "m.c3d")
+    before = src.read_bytes()
+    cases = [(["-o", str(src)], "same file as the input"),
+             (["-o", str(tmp_path / "no" / "s.bvh")], "does not exist"),
+             (["-o", str(tmp_path)], "is a folder"),
+             (["-o", str(tmp_path / "s.bvh"), "--report", str(tmp_path / "s.bvh")],
+              "same file as -o"),
+             (["-o", str(tmp_path / "s.bvh"), "--report", str(tmp_path / "no" / "r.json")],
+              "does not exist")]
+    for args, msg in cases:
+        assert main(["skeleton", str(src)] + args) == 2
+        err = capsys.readouterr().err
+        assert msg in err and "[skeleton] read" not in err, err
+    assert src.read_bytes() == before and not (tmp_path / "s.bvh").exists()
+    (tmp_path / "folder.c3d").mkdir()
+    assert main(["skeleton", str(tmp_path / "folder.c3d"), "-o", str(tmp_path / "s.bvh")]) == 2
+    assert "not a file" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["skeleton", str(src), "-o", str(tmp_path / "s.bvh"), "--segments", "0"])
+
+
+def test_cli_explains_empty_and_short_recordings(tmp_path, capsys, figure):
+    fig, mo = figure
+    cases = [(np.full_like(mo.markers, np.nan), "no marker has a sample"),
+             (mo.markers[:5], "has 5 frames, fewer than min_frames=10")]
+    for k, (x, msg) in enumerate(cases):
+        src = write_markers(MarkerData(positions=x, labels=fig.marker_names,
+                                       rate_hz=mo.rate_hz), tmp_path / f"m{k}.trc")
+        assert main(["skeleton", str(src), "-o", str(tmp_path / "s.bvh")]) == 2
+        assert msg in capsys.readouterr().err
+    # --segments above the number of markers is refused before the solve
+    src = write_markers(MarkerData(positions=mo.markers, labels=fig.marker_names,
+                                   rate_hz=mo.rate_hz), tmp_path / "m.trc")
+    n = fig.n_markers + 1
+    assert main(["skeleton", str(src), "-o", str(tmp_path / "s.bvh"), "--segments", str(n)]) == 2
+    err = capsys.readouterr().err
+    assert f"n_segments={n}: more segments than the {fig.n_markers} markers" in err
+    assert "segments:" not in err
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_a_marker_without_samples_is_named_and_left_out(tmp_path, capsys, figure):
+    fig, mo = figure
+    x = mo.markers.copy()
+    x[:, 2] = np.nan
+    src = write_markers(MarkerData(positions=x, labels=fig.marker_names, rate_hz=mo.rate_hz),
+                        tmp_path / "m.c3d")
+    for extra in ([], ["--no-merge"]):
+        assert main(["skeleton", str(src), "-o", str(tmp_path / "s.bvh")] + extra) == 0
+        out = capsys.readouterr()
+        assert f"1 of {fig.n_markers} trajectories have no sample and are left out: " \
+               f"{fig.marker_names[2]}" in out.err
+        assert f"5 segments, {fig.n_markers - 1} markers" in out.out

@@ -51,6 +51,9 @@ def test_real_c3d_files_read(shared_data):
     assert tennis.rate_hz == pytest.approx(50.0)
     # a person's markers lie within a few metres, so units came through as metres
     assert np.nanmax(np.abs(tennis.positions)) < 10.0
+    with pytest.warns(UserWarning, match="announces 3679 frames, the data holds 3678"):
+        basket = read_c3d(shared_data / "c3d" / "ktk_basket_sprint.c3d")
+    assert basket.n_frames == 3678
 
 
 def test_bad_inputs(tmp_path):
@@ -67,6 +70,29 @@ def test_bad_inputs(tmp_path):
     (tmp_path / "bad.trc").write_text("hello\n")
     with pytest.raises(ValueError, match="not a TRC"):
         read_markers(tmp_path / "bad.trc")
+    (tmp_path / "bin.trc").write_bytes(bytes([0xff, 0xfe, 0x00, 0x81]) * 50)
+    with pytest.raises(ValueError, match="bin.trc: not a text marker file"):
+        read_markers(tmp_path / "bin.trc")
+    (tmp_path / "folder.c3d").mkdir()
+    with pytest.raises(ValueError, match="folder.c3d: not a file"):
+        read_markers(tmp_path / "folder.c3d")
+    empty = MarkerData(positions=np.zeros((0, 2, 3)), labels=("a", "b"), rate_hz=100)
+    with pytest.raises(ValueError, match="no frames to write"):
+        write_markers(empty, tmp_path / "empty.c3d")
+    assert not list(tmp_path.glob("empty.c3d*"))
+
+
+def test_truncated_c3d_is_refused(tmp_path):
+    """A C3D cut short (a copy interrupted) is an error, not a shorter recording; one frame
+    short of the header's count is read with a warning (an exporter's off-by-one: the
+    ktk basketball file of ../shared/data announces 3679 frames and holds 3678)."""
+    d = _data(np.random.default_rng(0))
+    full = write_markers(d, tmp_path / "full.c3d").read_bytes()
+    cut = tmp_path / "cut.c3d"
+    cut.write_bytes(full[:len(full) - 3 * 512])
+    with pytest.raises(ValueError, match="cut.c3d: truncated C3D file: the header announces "
+                                         f"{d.n_frames} frames"):
+        read_markers(cut)
 
 
 def test_c3d_with_more_than_255_markers_uses_labels2(tmp_path):
