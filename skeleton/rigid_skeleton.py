@@ -203,7 +203,8 @@ def build_rigid_skeleton(trajectories, result, marker_names=None) -> RigidSkelet
         pts = mk + (jt if len(mk) < 3 else [])
         if len(pts) < 3:
             raise ValueError(f"segment {s} has {len(mk)} markers and {len(jt)} joints: "
-                             "need three points to line it up")
+                             "need three points to line it up (a leaf segment needs two "
+                             "markers: ask for fewer segments)")
         align.append(np.stack(pts, 1))                          # (T, P, 3)
     full = np.stack([~np.isnan(a).any(axis=(1, 2)) for a in align], 1)   # (T, S)
     common = np.flatnonzero(full.all(1))

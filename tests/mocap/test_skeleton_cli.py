@@ -155,3 +155,23 @@ def test_a_marker_without_samples_is_named_and_left_out(tmp_path, capsys, figure
         assert f"1 of {fig.n_markers} trajectories have no sample and are left out: " \
                f"{fig.marker_names[2]}" in out.err
         assert f"5 segments, {fig.n_markers - 1} markers" in out.out
+
+
+def test_cli_warns_when_the_skeleton_fits_poorly(tmp_path, capsys, figure):
+    """Five segments forced into one rigid body: the fit misses the markers by centimetres,
+    and the run says so (the figure's own five segments fit exactly: no warning)."""
+    fig, mo = figure
+    src = write_markers(MarkerData(positions=mo.markers, labels=fig.marker_names,
+                                   rate_hz=mo.rate_hz), tmp_path / "m.trc")
+    assert main(["skeleton", str(src), "-o", str(tmp_path / "a.bvh"), "--segments", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "[skeleton] warning: mean marker deviation" in err and "fit this rigid" in err
+    assert "Mean of empty slice" not in err          # no NumPy noise for one segment
+    assert main(["skeleton", str(src), "-o", str(tmp_path / "b.bvh")]) == 0
+    assert "warning: mean marker deviation" not in capsys.readouterr().err
+
+
+def test_mocap_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("mocap 0.")
