@@ -3,6 +3,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from hw_sim.articulated import animate, random_tree
+
+
+def bench_figure(seed, spacing_m=None):
+    """(figure, motion): benchmarks/bench_skeleton.py's figure ``seed``: a random tree of 5-20
+    segments with 2-4 markers each, 600 frames at 45-90 degrees range of motion, all drawn
+    from ``default_rng(seed)`` (``spacing_m``: random_tree's min_marker_spacing_m)."""
+    g = np.random.default_rng(seed)
+    extra = {} if spacing_m is None else {"min_marker_spacing_m": spacing_m}
+    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g, **extra)
+    return fig, animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+
 
 def segment_map(fig, labels):
     """truth segment -> estimated segment, or None if the clustering split/merged one."""

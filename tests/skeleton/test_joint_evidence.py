@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hw_sim.articulated import MIN_MARKER_SPACING_M, animate, random_tree
+from hw_sim.articulated import MIN_MARKER_SPACING_M
 from skeleton.joints import (HINGE_RATIO, JOINT_REACH_M, fit_joint, frame_quality,
                              joint_cost)
 from skeleton.pipeline import (ANCHOR, FALSIFY, FALSIFY_BELOW, HINGE_SURE, JUNCTION_K, POOR_FRAME,
@@ -16,16 +16,14 @@ from skeleton.pipeline import (ANCHOR, FALSIFY, FALSIFY_BELOW, HINGE_SURE, JUNCT
                                _raise_split_siblings, _tree_floor, lowpass, solve_skeleton)
 from skeleton.segments import distance_sd
 from skeleton.topology import skeleton_tree
-from tests.skeleton._figures import (exact_topology, largest_case, segment_map,
+from tests.skeleton._figures import (bench_figure, exact_topology, largest_case, segment_map,
                                      solver_joint_errors)
 
 NOISE_M = 1e-3
 
 
 def _figure(seed, spacing_m=MIN_MARKER_SPACING_M):
-    g = np.random.default_rng(seed)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g, min_marker_spacing_m=spacing_m)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    fig, mo = bench_figure(seed, spacing_m)
     members = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, NOISE_M, mo.markers.shape)
     return fig, mo, members, lowpass(noisy, mo.rate_hz)

@@ -11,8 +11,8 @@ import pytest
 from hw_sim.articulated import animate, random_tree
 from skeleton.junctions import junction_groups, resolve_junctions
 from skeleton.topology import tree_from_edges
-from tests.skeleton._figures import (coincident_joint_groups, exact_topology, segment_map,
-                                     solver_joint_errors, topology_equivalent)
+from tests.skeleton._figures import (bench_figure, coincident_joint_groups, exact_topology,
+                                     segment_map, solver_joint_errors, topology_equivalent)
 
 TOL_M = 1e-3
 
@@ -149,9 +149,7 @@ def test_chained_junctions_split_until_each_has_a_hub():
     so the group was left as the tree had it. Split at half the tolerance, the junction
     {0, 3, 5} is resolved on its own with 0 as the hub, and the topology is exact."""
     from skeleton.pipeline import solve_skeleton
-    g = np.random.default_rng(5027)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    fig, mo = bench_figure(5027)
     assert fig.parents[3] == fig.parents[5] == 0
     assert np.linalg.norm(fig.joint_offsets[3] - fig.joint_offsets[5]) < 2e-3
     noisy = mo.markers + np.random.default_rng(27).normal(0, 1e-3, mo.markers.shape)
@@ -253,9 +251,7 @@ def test_coaxial_sibling_hinges_hang_from_their_parent():
     hinge too (0.89x the floor, the true joints 0.94x and 1.01x) and was kept linked inside
     the junction {0, 1, 2, 3, 4}, hanging 2 from 1."""
     from skeleton.pipeline import solve_skeleton
-    g = np.random.default_rng(70012)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    fig, mo = bench_figure(70012)
     assert fig.parents[1] == fig.parents[2] == 0
     assert fig.joint_types[1] == fig.joint_types[2] == "hinge"
     noisy = mo.markers + np.random.default_rng(12).normal(0, 1e-3, mo.markers.shape)
@@ -270,9 +266,7 @@ def test_hinge_of_two_frameless_segments_counts_for_its_hub():
     counted one hinge; 14's counted two (7-14 moves in a plane), and 7 hung from 14. In 3's
     completed frame 3-7 is a hinge."""
     from skeleton.pipeline import solve_skeleton
-    g = np.random.default_rng(85038)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    fig, mo = bench_figure(85038)
     assert fig.parents[7] == fig.parents[14] == 3
     assert [fig.joint_types[s] for s in (7, 14)] == ["hinge", "hinge"]
     assert [int((fig.marker_segment == s).sum()) for s in (3, 7, 14)] == [2, 2, 3]
@@ -315,9 +309,7 @@ def test_junction_spread_is_over_the_final_joints():
     the truth, and the reported spread is measured over the joints the result holds."""
     from skeleton.junctions import joint_spread
     from skeleton.pipeline import solve_skeleton
-    g = np.random.default_rng(12011)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    fig, mo = bench_figure(12011)
     noisy = mo.markers + np.random.default_rng(11).normal(0, 1e-3, mo.markers.shape)
     res = solve_skeleton(noisy, mo.rate_hz, rng=0)
     assert exact_topology(fig, res) and len(res.junctions) >= 1
@@ -350,9 +342,7 @@ def test_junctions_found_on_completed_joints(seed):
     the parent, the test's threshold 4x). Junctions are now found on the tree's joints as
     the final fit makes them (``skeleton.pipeline._completed_fits``)."""
     from skeleton.pipeline import solve_skeleton
-    g = np.random.default_rng(seed)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    fig, mo = bench_figure(seed)
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
 
@@ -365,9 +355,7 @@ def test_hub_chosen_by_the_star_likelihood_where_decisive():
     star around 0 is better by more than STAR_MARGIN x its residual variance. Without the
     star fits (star_margin = inf) the tree is wrong."""
     from skeleton.pipeline import solve_skeleton
-    g = np.random.default_rng(87049)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    fig, mo = bench_figure(87049)
     assert fig.parents[5] == fig.parents[6] == 0
     noisy = mo.markers + np.random.default_rng(49).normal(0, 1e-3, mo.markers.shape)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))

@@ -8,7 +8,8 @@ from hw_sim.articulated import animate, random_tree
 from skeleton import pipeline
 from skeleton.pipeline import solve_skeleton
 from skeleton.rigid import kabsch
-from tests.skeleton._figures import segment_map, solver_joint_errors
+from tests.skeleton._figures import (bench_figure, exact_topology, segment_map,
+                                     solver_joint_errors)
 
 EXACT_JOINT_M = 1e-6       # noise-free joint centre (target 0.5 mm; measured ~1e-12)
 NOISY_JOINT_M = 3e-3       # 1 mm marker noise (median)
@@ -26,12 +27,8 @@ def test_random_tree_topology_and_joints(seed):
     fig = random_tree(int(g.integers(5, 9)), (3, 4), rng=seed)
     mo = animate(fig, 300, rng=seed, rom_deg=60.0)
     res = solve_skeleton(mo.markers, mo.rate_hz, rng=0)
-    segmap = _truth_map(fig, res)
-    assert segmap is not None
-    truth = {tuple(sorted((segmap[s], segmap[fig.parents[s]]))) for s in range(1, fig.n_segments)}
-    est = {tuple(sorted((s, int(res.parents[s])))) for s in range(res.n_segments)
-           if res.parents[s] >= 0}
-    assert est == truth
+    assert exact_topology(fig, res)
+    segmap = segment_map(fig, res.labels)
     assert solver_joint_errors(fig, mo, res, segmap).max() < EXACT_JOINT_M
 
 
@@ -41,12 +38,7 @@ def test_two_to_four_markers_per_segment():
     assert (np.bincount(fig.marker_segment) == 2).sum() >= 1
     mo = animate(fig, 200, rng=11, rom_deg=60.0)
     res = solve_skeleton(mo.markers, mo.rate_hz, rng=0)
-    segmap = _truth_map(fig, res)
-    assert segmap is not None
-    truth = {tuple(sorted((segmap[s], segmap[fig.parents[s]]))) for s in range(1, fig.n_segments)}
-    est = {tuple(sorted((s, int(res.parents[s])))) for s in range(res.n_segments)
-           if res.parents[s] >= 0}
-    assert est == truth
+    assert exact_topology(fig, res)
 
 
 def test_noisy_joint_centres():
@@ -78,9 +70,7 @@ def test_automatic_segment_count_on_two_to_four_marker_figures(noise_m):
     from skeleton.segments import segment_markers
 
     for k in range(10):
-        g = np.random.default_rng(1000 + k)
-        fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-        mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+        fig, mo = bench_figure(1000 + k)
         tr = mo.markers + np.random.default_rng(k).normal(0, noise_m, mo.markers.shape)
         seg = segment_markers(tr, None, rng=0)
         assert seg.n_segments == fig.n_segments

@@ -8,12 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hw_sim.articulated import animate, random_tree
 from skeleton.pipeline import solve_skeleton
-from tests.skeleton._figures import segment_map, solver_joint_errors, topology_equivalent
+from tests.skeleton._figures import (bench_figure, exact_topology, segment_map,
+                                     solver_joint_errors, topology_equivalent)
 
 N_FIGURES = 50
-N_FRAMES = 600
 NOISE_M = 1e-3
 MIN_EXACT = 49              # topology exactly right (issue 6, point 6)
 MEDIAN_CLEAN_M = 0.5e-3     # median joint-centre error, noise-free
@@ -23,22 +22,14 @@ EQUIV_TOL_FACTOR = 3.0      # equivalence metric: coincident joints within 3x th
 
 def figures():
     for k in range(N_FIGURES):
-        g = np.random.default_rng(1000 + k)
-        fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-        yield k, fig, animate(fig, N_FRAMES, rng=g, rom_deg=float(g.uniform(45, 90)))
+        yield (k, *bench_figure(1000 + k))
 
 
 def evaluate(fig, mo, res):
     """(topology exactly right, per-joint median centre errors m; hinges perpendicular)."""
-    segmap = segment_map(fig, res.labels)
-    if segmap is None or res.n_segments != fig.n_segments:
+    if not exact_topology(fig, res):
         return False, []
-    truth = {tuple(sorted((segmap[s], segmap[fig.parents[s]]))) for s in range(1, fig.n_segments)}
-    est = {tuple(sorted((s, int(res.parents[s])))) for s in range(res.n_segments)
-           if res.parents[s] >= 0}
-    if est != truth:
-        return False, []
-    return True, list(solver_joint_errors(fig, mo, res, segmap))
+    return True, list(solver_joint_errors(fig, mo, res, segment_map(fig, res.labels)))
 
 
 @pytest.mark.slow

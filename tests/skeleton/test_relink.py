@@ -7,7 +7,7 @@ import pytest
 from hw_sim.articulated import animate, random_tree
 from skeleton.pipeline import lowpass, solve_skeleton
 from skeleton.relink import relink_by_stars
-from tests.skeleton._figures import exact_topology
+from tests.skeleton._figures import bench_figure, exact_topology
 
 
 def _figure(seed, n=8):
@@ -96,9 +96,7 @@ def test_siblings_far_apart_hung_from_each_other_by_the_tree(seed, parent, a, b)
       apart; the tree hung 3 from 1, and the true pair 0-3 cost 3.09x the floor, above the
       re-link's former plausibility bound of 3 (``PLAUSIBLE``, now 5). The star around 0
       fits 1083x its residual variance better."""
-    g = np.random.default_rng(seed)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    fig, mo = bench_figure(seed)
     assert fig.parents[a] == fig.parents[b] == parent
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
@@ -113,9 +111,7 @@ def test_a_move_against_an_unconverged_star_is_checked_from_the_winners_joints()
     residual variance) and 3 was re-hung from 7. Started at the joints the star around 7
     found, the star around 2 fits 1.58e-4: no move."""
     seed = 109048
-    g = np.random.default_rng(seed)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
+    fig, mo = bench_figure(seed)
     assert fig.parents[3] == fig.parents[7] == 2
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
     log = []

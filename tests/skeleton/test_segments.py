@@ -15,17 +15,15 @@ import sys
 import numpy as np
 import pytest
 
-from hw_sim.articulated import MIN_MARKER_SPACING_M, animate, random_tree
+from hw_sim.articulated import MIN_MARKER_SPACING_M
 from skeleton.segments import distance_sd, noise_sd, segment_markers
+from tests.skeleton._figures import bench_figure
 
 NOISE_M = 1e-3
 
 
 def _figure(seed: int, spacing_m: float = MIN_MARKER_SPACING_M):
-    g = np.random.default_rng(seed)
-    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g, min_marker_spacing_m=spacing_m)
-    mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
-    return fig, mo
+    return bench_figure(seed, spacing_m)
 
 
 def _noisy(markers, seed: int, noise_m: float, gaps: bool = False):
