@@ -16,6 +16,11 @@ def bench_figure(seed, spacing_m=None):
     return fig, animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)))
 
 
+
+def members(fig):
+    """Each true segment's marker indices."""
+    return [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
+
 def segment_map(fig, labels):
     """truth segment -> estimated segment, or None if the clustering split/merged one."""
     m = []

@@ -5,14 +5,11 @@ import numpy as np
 
 from hw_sim.articulated import animate, random_tree
 from skeleton.joints import fit_joint, joint_cost
+from tests.skeleton._figures import members
 
 NOISE_M = 1e-3
 EXACT_COST_M = 1e-9        # a true joint on noise-free data
 SIGMA_REL = 0.25           # true-joint cost ~ marker noise sd, whatever the marker layout
-
-
-def _members(fig):
-    return [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
 
 
 def _two_two_figure():
@@ -31,7 +28,7 @@ def test_two_marker_pair_exact():
     and the fitted centre is the true joint."""
     fig, s, seed = _two_two_figure()
     mo = animate(fig, 300, rng=seed, rom_deg=60.0)
-    m = _members(fig)
+    m = members(fig)
     assert joint_cost(mo.markers, m[fig.parents[s]], m[s]) < EXACT_COST_M
     f = fit_joint(mo.markers, m[fig.parents[s]], m[s])
     err = np.linalg.norm(f.world - mo.joint_centres[:, s], axis=1)
@@ -42,7 +39,7 @@ def test_cost_estimates_noise_for_true_joints_and_exceeds_it_for_false():
     fig = random_tree(8, (2, 4), rng=3)
     mo = animate(fig, 600, rng=3, rom_deg=60.0)
     tr = mo.markers + np.random.default_rng(0).normal(0, NOISE_M, mo.markers.shape)
-    m = _members(fig)
+    m = members(fig)
     true_pairs = {(int(fig.parents[s]), s) for s in range(1, fig.n_segments)}
     tc, fc = [], []
     for i in range(fig.n_segments):

@@ -109,16 +109,21 @@ def test_path_max_is_the_costliest_edge_between():
     assert _path_max(top, cost, 2, 3) == 2.0
 
 
+def _min_q(fig, noisy):
+    """The pipeline's frameless threshold: (POOR_FRAME x the median within-segment distance
+    sd of the noisy markers) squared."""
+    seg = fig.marker_segment
+    same = (seg[:, None] == seg[None]) & ~np.eye(seg.size, dtype=bool)
+    return (POOR_FRAME * float(np.median(distance_sd(noisy)[same]))) ** 2
+
+
 def _noisy(seed, spacing_m=MIN_MARKER_SPACING_M):
     """The figure, its members, the 1 mm noisy markers low-passed as for the topology costs
     (trimmed), the frameless threshold of the pipeline (POOR_FRAME x the within-segment
     distance sd) and the truth's edges."""
     fig, mo, m, _ = _figure(seed, spacing_m)
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, NOISE_M, mo.markers.shape)
-    sd = distance_sd(noisy)
-    seg = fig.marker_segment
-    same = (seg[:, None] == seg[None]) & ~np.eye(seg.size, dtype=bool)
-    min_q = (POOR_FRAME * float(np.median(sd[same]))) ** 2
+    min_q = _min_q(fig, noisy)
     truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
     return fig, mo, m, noisy, lowpass(noisy, mo.rate_hz, trim=True), min_q, truth
 
@@ -197,9 +202,7 @@ def test_chained_anchors_raise_a_false_pair_below_a_two_marker_parent():
     noisy = mo.markers + np.random.default_rng(0).normal(0, NOISE_M, mo.markers.shape)
     smooth = lowpass(noisy, mo.rate_hz, trim=True)
     m = [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
-    sd = distance_sd(noisy)
-    same = (fig.marker_segment[:, None] == fig.marker_segment[None]) & ~np.eye(31, dtype=bool)
-    min_q = (POOR_FRAME * float(np.median(sd[same]))) ** 2
+    min_q = _min_q(fig, noisy)
     truth = {frozenset((s, int(fig.parents[s]))) for s in range(1, fig.n_segments)}
     assert [int(fig.parents[s]) for s in (3, 4, 7)] == [2, 3, 3]
     assert all(m[s].size == 2 for s in (2, 3, 4, 7)) and frozenset((4, 7)) not in truth

@@ -7,6 +7,7 @@ import pytest
 from hw_sim.articulated import animate, random_tree
 from skeleton.pipeline import lowpass
 from skeleton.star_fit import STAR_FRAMES, star_misfit
+from tests.skeleton._figures import members
 
 
 def _siblings(seed, min_gap_m, max_gap_m):
@@ -26,10 +27,6 @@ def _siblings(seed, min_gap_m, max_gap_m):
     raise AssertionError("no such siblings")
 
 
-def _members(fig):
-    return [np.flatnonzero(fig.marker_segment == s) for s in range(fig.n_segments)]
-
-
 @pytest.mark.parametrize("seed", [0, 100])
 def test_true_star_fits_exact_data_and_a_sibling_hub_does_not(seed):
     """Noise-free markers: the star around the true parent reproduces them to ~0 (the
@@ -37,7 +34,7 @@ def test_true_star_fits_exact_data_and_a_sibling_hub_does_not(seed):
     the sibling's rotation."""
     fig, mo, p, a, b, gap = _siblings(seed, 0.005, 0.03)
     c = 0.5 * (mo.joint_centres[:, a] + mo.joint_centres[:, b])
-    fits = {h: star_misfit(mo.markers, _members(fig), {p, a, b}, h, c) for h in (p, a, b)}
+    fits = {h: star_misfit(mo.markers, members(fig), {p, a, b}, h, c) for h in (p, a, b)}
     assert all(f.ok for f in fits.values())
     rms = {h: np.sqrt(f.ssq_m2 / f.n_res) for h, f in fits.items()}
     assert rms[p] < 1e-6, rms
@@ -51,7 +48,7 @@ def test_true_star_residual_is_the_marker_noise():
     fig, mo, p, a, b, _ = _siblings(0, 0.005, 0.03)
     noisy = mo.markers + np.random.default_rng(1).normal(0, 1e-3, mo.markers.shape)
     c = 0.5 * (mo.joint_centres[:, a] + mo.joint_centres[:, b])
-    f = star_misfit(noisy, _members(fig), {p, a, b}, p, c)
+    f = star_misfit(noisy, members(fig), {p, a, b}, p, c)
     expected = 1e-6 * (1 - f.n_par / f.n_res)
     assert abs(f.ssq_m2 / f.n_res / expected - 1) < 0.05, f
 
@@ -67,7 +64,7 @@ def test_parent_hub_wins_for_siblings_a_few_mm_apart_at_one_mm_noise(seed):
     noisy = mo.markers + np.random.default_rng(2).normal(0, 1e-3, mo.markers.shape)
     data = lowpass(noisy, mo.rate_hz)
     c = 0.5 * (mo.joint_centres[:, a] + mo.joint_centres[:, b])
-    fits = {h: star_misfit(data, _members(fig), {p, a, b}, h, c) for h in (p, a, b)}
+    fits = {h: star_misfit(data, members(fig), {p, a, b}, h, c) for h in (p, a, b)}
     var = fits[p].ssq_m2 / fits[p].n_res
     margin = min(fits[a].ssq_m2, fits[b].ssq_m2) - fits[p].ssq_m2
     assert margin > STAR_MARGIN * var, (gap, margin / var)
@@ -77,12 +74,12 @@ def test_star_misfit_rejects_bad_input_and_reports_unseen_markers():
     fig, mo, p, a, b, _ = _siblings(0, 0.005, 0.03)
     c = mo.joint_centres[:, a]
     with pytest.raises(ValueError, match="hub"):
-        star_misfit(mo.markers, _members(fig), {a, b}, p, c)
+        star_misfit(mo.markers, members(fig), {a, b}, p, c)
     with pytest.raises(ValueError, match="hub"):
-        star_misfit(mo.markers, _members(fig), {p}, p, c)
+        star_misfit(mo.markers, members(fig), {p}, p, c)
     hidden = mo.markers.copy()
-    hidden[:, _members(fig)[a][0]] = np.nan
-    f = star_misfit(hidden, _members(fig), {p, a, b}, p, c)
+    hidden[:, members(fig)[a][0]] = np.nan
+    f = star_misfit(hidden, members(fig), {p, a, b}, p, c)
     assert not f.ok and "frames" in f.reason and not np.isfinite(f.ssq_m2)
 
 
@@ -99,7 +96,7 @@ def test_star_reports_its_fitted_joints_on_the_fitted_frames():
     noisy = mo.markers + np.random.default_rng(4).normal(0, 1e-3, mo.markers.shape)
     data = lowpass(noisy, mo.rate_hz)
     off = np.array([0.015, 0.0, 0.0])
-    f = star_misfit(data, _members(fig), {p, a, b}, p,
+    f = star_misfit(data, members(fig), {p, a, b}, p,
                        {a: mo.joint_centres[:, a] + off, b: mo.joint_centres[:, b] + off})
     assert f.ok and set(f.joints) == {a, b}
     for s in (a, b):
