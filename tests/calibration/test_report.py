@@ -1,6 +1,7 @@
 """Calibration report figures from known inputs: RMS, counts, coverage, ray error, wand stats,
 the noise floor of the wand SD, the printed summary and the PNG."""
 import numpy as np
+import pytest
 
 from calibration.report import make_report
 from hw_sim.rig import make_rig
@@ -55,6 +56,8 @@ def test_ray_error_of_a_displaced_point_and_single_point_mode():
     inlier = np.ones(xy.shape[:3], bool)
     rep = make_report(list(rig), xy, np.zeros(xy.shape), inlier, Xd)
     # the distance of a point moved 2 mm along z from a ray is 2 mm x sin(ray, z)
-    assert 0.5 < rep.mean_ray_error_mm < 2.0
+    d = X[None] - np.array([c.center for c in rig])[:, None, None]
+    sin = np.linalg.norm(np.cross(d, [0.0, 0.0, 1.0]), axis=-1) / np.linalg.norm(d, axis=-1)
+    assert rep.mean_ray_error_mm == pytest.approx(2.0 * sin.mean(), rel=1e-9)
     assert np.isnan(rep.wand_mean_mm) and np.isnan(rep.wand_sd_floor_mm)
     assert "no metric scale" in rep.summary()

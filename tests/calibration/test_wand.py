@@ -13,9 +13,10 @@ from hw_sim.scenes import wand
 EXACT_CENTRE_M = 1e-8        # noise-free data: solver tolerance only (measured ~1e-11 m)
 EXACT_ANGLE_DEG = 1e-5       # arccos(trace) resolution floor ~1e-6 deg
 # 0.05 px noise, 200 frames, 6 cameras: centre error ~ noise * depth / f / sqrt(n obs) * lever;
-# measured ~0.1-0.2 mm at 300 frames / 8 cameras; 1 mm is the acceptance bound of the brief.
-NOISY_CENTRE_M = 1e-3
-NOISY_ANGLE_DEG = 0.02
+# 1 mm is the acceptance bound; measured here 0.10 mm (3-marker wand), 0.36 mm (two-marker),
+# 0.29 mm (recovered detections); angles 0.0008-0.0015 deg.
+NOISY_CENTRE_M = 0.5e-3
+NOISY_ANGLE_DEG = 0.005
 NOISE_PX = 0.05
 RMS_REL = 0.2                # per-coordinate reprojection RMS within 20% of the injected noise
 # ~200 frames: the sample SD of the wand length has ~5% relative standard error; the report's
@@ -60,7 +61,7 @@ def test_noisy_wand_within_noise_bounds_and_deterministic():
     assert da.max() < NOISY_ANGLE_DEG
     rms_coord = res.report.rms_px / np.sqrt(2)
     assert np.all(np.abs(rms_coord - NOISE_PX) < RMS_REL * NOISE_PX)
-    assert abs(res.report.wand_mean_mm - 500.0) < 0.1
+    assert abs(res.report.wand_mean_mm - 500.0) < 0.02       # 0.004 mm measured (both wands)
     # the wand SD is triangulation noise: at the floor the estimated noise predicts
     rep = res.report
     assert abs(rep.noise_px - NOISE_PX) < RMS_REL * NOISE_PX
@@ -135,7 +136,7 @@ def test_two_marker_wand_with_noise():
     dc, da = _errors(res.rig, rig)
     assert dc.max() < NOISY_CENTRE_M
     assert da.max() < NOISY_ANGLE_DEG
-    assert abs(res.report.wand_mean_mm - 500.0) < 0.1
+    assert abs(res.report.wand_mean_mm - 500.0) < 0.02       # 0.004 mm measured (both wands)
     assert abs(res.report.wand_sd_mm / res.report.wand_sd_floor_mm - 1) < SD_FLOOR_REL
 
 

@@ -91,7 +91,6 @@ def test_bad_wand():
 
 
 def test_figure_scene_has_body_occluders():
-    articulated = pytest.importorskip("hw_sim.articulated")  # written in parallel
     from hw_sim.observe import observe
     from hw_sim.rig import make_rig
     from hw_sim.scenes import figure

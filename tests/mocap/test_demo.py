@@ -33,7 +33,7 @@ def test_demo_accuracy_against_truth(demo):
 
 
 def test_demo_files_read_back_by_independent_reader(demo):
-    ezc3d = pytest.importorskip("ezc3d")
+    import ezc3d
     out, res = demo
     ours = read_markers(out / "markers.c3d")
     c = ezc3d.c3d(str(out / "markers.c3d"))
@@ -58,7 +58,7 @@ def test_demo_cli_rejects_bad_config(tmp_path, capsys):
 
 
 def test_demo_skeleton_outputs(demo):
-    bvhio = pytest.importorskip("bvhio")
+    import bvhio
     out, res = demo
     assert (out / "skeleton.bvh").exists() and (out / "skeleton.json").exists()
     root = bvhio.readAsHierarchy(str(out / "skeleton.bvh"))

@@ -2,7 +2,7 @@
 
 ``moving_markers`` builds a ``hw_sim.scenes.MarkerScene`` of markers on smooth random
 paths with moving capsule occluders (a stand-in when the articulated figure is not wanted);
-``figure_scene`` uses ``hw_sim.scenes.figure`` when ``hw_sim.articulated`` is present.
+``figure_scene`` is ``hw_sim.scenes.figure``.
 """
 from __future__ import annotations
 
@@ -44,12 +44,9 @@ def moving_markers(n_markers=40, n_frames=240, rate_hz=120.0, rng=0, *, speed_mp
 
 
 def figure_scene(n_frames=240, rate_hz=120.0, rng=0):
-    """The articulated hw_sim figure, or None when hw_sim.articulated is not available."""
-    try:
-        from hw_sim.scenes import figure
-        return figure(n_frames, rate_hz, rng)
-    except ImportError:
-        return None
+    """The articulated hw_sim figure (``hw_sim.scenes.figure``)."""
+    from hw_sim.scenes import figure
+    return figure(n_frames, rate_hz, rng)
 
 
 def reconstructable(obs) -> np.ndarray:
@@ -68,8 +65,9 @@ def match_points(points, truth, tol_m):
 
 
 def score_clouds(clouds, obs, tol_m=0.005):
-    """Counts over all frames: reconstructable markers, found, points, spurious points,
-    3D errors (m) of the points matched to truth."""
+    """Counts over all frames: reconstructable markers, found, points, spurious points (no
+    truth marker within ``tol_m``, or a second point on one marker), 3D errors (m) of the
+    points matched to truth."""
     need = reconstructable(obs)
     n_need = n_found = n_pts = n_spur = 0
     errs = []
@@ -78,7 +76,7 @@ def score_clouds(clouds, obs, tol_m=0.005):
         truth = obs.positions[t]
         m = match_points(cl.points, truth, tol_m)
         n_pts += len(cl)
-        n_spur += int(np.sum(m < 0))
+        n_spur += int(np.sum(m < 0)) + int(np.sum(m >= 0) - np.unique(m[m >= 0]).size)
         found = np.zeros(truth.shape[0], bool)
         found[m[m >= 0]] = True
         n_need += int(need[t].sum())

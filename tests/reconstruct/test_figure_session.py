@@ -20,7 +20,7 @@ MIN_FOUND = 0.995                      # acceptance (issue 4 point 2)
 MAX_SPURIOUS = 0.002
 # 0.05 px at ~5.5 m with f ~1200 px is 0.23 mm across each ray: points built from unmerged
 # blobs only; points using a merged blob (two markers' area-weighted centroid) are biased
-RMS_3D_M = 0.0005
+RMS_3D_M = 0.00035                 # ~0.2 mm per axis (test_pipeline); 0.26 mm measured
 FIG_SEED = 21
 
 
@@ -45,7 +45,7 @@ def test_markers_seen_by_two_cameras_are_reconstructed(session):
     s = score_clouds(clouds, obs)
     assert s["found"] / s["need"] >= MIN_FOUND, s
     e = clean_point_errors(clouds, obs)
-    assert e.size > 0.9 * s["found"]
+    assert e.size > 0.99 * s["found"]                # 0.997 measured
     assert np.sqrt(np.mean(e ** 2)) < RMS_3D_M
 
 

@@ -27,7 +27,7 @@ def test_roundtrip(tmp_path, suffix):
 
 
 def test_c3d_independent_reader(tmp_path):
-    ezc3d = pytest.importorskip("ezc3d")
+    import ezc3d
     d = _data(np.random.default_rng(1))
     path = write_markers(d, tmp_path / "x.c3d")
     c = ezc3d.c3d(str(path))
@@ -98,7 +98,7 @@ def test_truncated_c3d_is_refused(tmp_path):
 def test_c3d_with_more_than_255_markers_uses_labels2(tmp_path):
     """A long unlabelled take has hundreds of trajectories: POINT:LABELS2, LABELS3, ...
     carry the labels past 255; an independent reader sees every marker and label."""
-    ezc3d = pytest.importorskip("ezc3d")
+    import ezc3d
     rng = np.random.default_rng(5)
     P = rng.normal(size=(6, 600, 3))
     P[2, 300] = np.nan

@@ -82,7 +82,8 @@ def test_one_bad_ray_is_rejected_exactly(rig):
     expected_used = np.ones((len(X), len(rig)), bool)
     expected_used[np.arange(len(X)), bad_cam] = False
     assert np.array_equal(r.used, expected_used)
-    assert np.sqrt(np.mean(np.sum((r.points - X) ** 2, axis=1))) < 1e-3
+    # the remaining rays' noise only: 0.20 mm (0.18 mm with no bad ray at all)
+    assert np.sqrt(np.mean(np.sum((r.points - X) ** 2, axis=1))) < 0.3e-3
     assert np.all(r.ray_error_px[np.arange(len(X)), bad_cam] > BAD_RAY_PX / 2)
 
 

@@ -29,7 +29,7 @@ def _fitted(fig, T, seed, hide=0.0, ik=False, noise_m=0.0):
 
 
 def _bvhio_positions(path, names, T):
-    bvhio = pytest.importorskip("bvhio")
+    import bvhio
     root = bvhio.readAsHierarchy(str(path))
     out = np.full((T, len(names), 3), np.nan)
     for f in range(T):
