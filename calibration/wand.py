@@ -23,6 +23,10 @@ from calibration.wand_detect import (detect_single_point, detect_wand,
 from capture.detections import Detections2D
 
 
+#: wand observations a camera must keep in the bundle to count as calibrated
+MIN_CAMERA_OBS = 10
+
+
 @dataclass(frozen=True, kw_only=True)
 class WandCalibration:
     """rig: calibrated cameras (None when not ok); report; ok; reason when not ok."""
@@ -133,5 +137,12 @@ def calibrate_wand(detections: Detections2D, *, initial_intrinsics, wand_mm=(0.0
     noise = float(np.sqrt(np.nansum(ba.residual_px[ba.inlier] ** 2) / max(n_res - n_par, 1)))
     rep = make_report(ba.cameras, xy, ba.residual_px, ba.inlier, Xfree, spacing_m=spacing,
                       noise_px=noise)
+    few = [c.name for c, n in zip(ba.cameras, rep.n_obs) if n < MIN_CAMERA_OBS]
+    if few:       # a camera the bundle kept no views of is not calibrated, whatever its pose
+        return WandCalibration(rig=None, report=rep, ok=False,
+                               reason=f"camera(s) {', '.join(few)} kept fewer than "
+                                      f"{MIN_CAMERA_OBS} wand observations (wrong intrinsics "
+                                      f"or image size?)",
+                               residual_px=ba.residual_px)
     return WandCalibration(rig=Rig(cameras=tuple(ba.cameras)), report=rep, ok=True,
                            residual_px=ba.residual_px)

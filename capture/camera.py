@@ -58,6 +58,10 @@ class CameraSettings:
             raise ValueError(f"rate_hz={self.rate_hz}, expected > 0")
         if self.exposure_us is not None and not self.exposure_us > 0:
             raise ValueError(f"exposure_us={self.exposure_us}, expected > 0")
+        if (self.exposure_us is not None and self.rate_hz is not None
+                and self.exposure_us >= 1e6 / self.rate_hz):
+            raise ValueError(f"exposure_us={self.exposure_us:g} does not fit in a frame period "
+                             f"of {1e6 / self.rate_hz:g} us at rate_hz={self.rate_hz:g}")
         if self.gain is not None and not self.gain >= 0:
             raise ValueError(f"gain={self.gain}, expected >= 0")
         if self.pixel_format is not None and not isinstance(self.pixel_format, PixelFormat):

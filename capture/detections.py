@@ -189,6 +189,8 @@ def read_detections_csv(path, camera_names: Sequence[str] | None = None,
             a = float(row["area_px"]) if has_area else np.nan
         except (TypeError, ValueError) as e:
             raise ValueError(f"{path}:{lineno}: bad row {row}: {e}") from e
+        if f_i < 0:
+            raise ValueError(f"{path}:{lineno}: frame {f_i} < 0")
         if not (np.isfinite(x) and np.isfinite(y)):
             continue  # a missing blob is simply absent
         fr.append(f_i)

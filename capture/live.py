@@ -6,6 +6,8 @@ happens (camera lost: goes on; sync box fault or full disk: stops, re-raises).
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -30,8 +32,8 @@ def record_live(cameras: Sequence[Camera], sync: SyncBox | None, out, *, duratio
                 codec: int = CODEC_AUTO,
                 on_status: Callable[[str], None] | None = None) -> LiveResult:
     """Run cameras (+ sync box) for ``duration_s`` and record to folder ``out``."""
-    if not duration_s > 0:
-        raise ValueError(f"duration_s={duration_s}, expected > 0")
+    if not (duration_s > 0 and math.isfinite(duration_s)):
+        raise ValueError(f"duration_s={duration_s}, expected a finite duration > 0")
     rate = sync.config.rate_hz if sync is not None and sync.config is not None else rate_hz
     recorded = []
     for c in cameras:

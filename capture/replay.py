@@ -15,6 +15,7 @@ import json
 import os
 import struct
 import time
+import warnings
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -80,18 +81,30 @@ def load_metadata(path) -> RecordingMetadata:
     mp = path / "metadata.json"
     if not mp.exists():
         raise FileNotFoundError(f"not a recording folder (no metadata.json): {path}")
-    m = json.loads(mp.read_text())
-    if m.get("format") != "openmocap-recording":
-        raise ValueError(f"{mp}: format={m.get('format')!r}, expected 'openmocap-recording'")
-    cams = m["cameras"]
-    return RecordingMetadata(
-        path=path, camera_ids=tuple(c["id"] for c in cams),
-        devices=tuple(c.get("device", "") for c in cams),
-        settings=tuple(None if not c.get("settings") else CameraSettings.from_dict(c["settings"])
-                       for c in cams),
-        files=tuple(c["file"] for c in cams), rate_hz=float(m["rate_hz"]), sync=m.get("sync"),
-        calibration=m.get("calibration"), complete=bool(m.get("complete")),
-        detections=m.get("detections"), raw=m)
+    try:
+        m = json.loads(mp.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{mp}: not a JSON metadata file ({e})") from e
+    if not isinstance(m, dict) or m.get("format") != "openmocap-recording":
+        fmt = m.get("format") if isinstance(m, dict) else None
+        raise ValueError(f"{mp}: format={fmt!r}, expected 'openmocap-recording'")
+    try:
+        cams = m["cameras"]
+        meta = RecordingMetadata(
+            path=path, camera_ids=tuple(c["id"] for c in cams),
+            devices=tuple(c.get("device", "") for c in cams),
+            settings=tuple(None if not c.get("settings")
+                           else CameraSettings.from_dict(c["settings"]) for c in cams),
+            files=tuple(c["file"] for c in cams), rate_hz=float(m["rate_hz"]),
+            sync=m.get("sync"), calibration=m.get("calibration"),
+            complete=bool(m.get("complete")), detections=m.get("detections"), raw=m)
+    except (KeyError, TypeError, AttributeError, ValueError) as e:
+        raise ValueError(f"{mp}: malformed metadata ({type(e).__name__}: {e})") from e
+    root = path.resolve()
+    for f in meta.files:
+        if root not in (path / f).resolve().parents:
+            raise ValueError(f"{mp}: camera file {f!r} lies outside the recording folder")
+    return meta
 
 
 class FrameFileReader:
@@ -148,7 +161,16 @@ def _readers(meta: RecordingMetadata) -> list[FrameFileReader]:
 
 
 def _merged(meta: RecordingMetadata) -> Iterator[tuple[int, list[RecordedFrame | None]]]:
-    its = [iter(r) for r in _readers(meta)]
+    readers = _readers(meta)
+    yield from _merge_readers(readers)
+    for r in readers:       # a torn tail (a crash while writing) is kept up to its last record
+        if r.truncated:
+            warnings.warn(f"{r.path}: truncated after {r.n_read} frames (the recording was "
+                          f"cut short; the frames before the cut are used)", stacklevel=2)
+
+
+def _merge_readers(readers) -> Iterator[tuple[int, list[RecordedFrame | None]]]:
+    its = [iter(r) for r in readers]
     heap = []
     for i, it in enumerate(its):
         rf = next(it, None)

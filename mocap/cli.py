@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 
@@ -39,11 +40,18 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    if os.environ.get("MOCAP_DEBUG"):               # full tracebacks for bug reports
+        return int(args.func(args) or 0)
     try:
         return int(args.func(args) or 0)
     except (ValueError, TypeError, OSError) as e:   # OSError: missing, unwritable paths
         print(f"mocap {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except (RuntimeError, MemoryError) as e:        # CaptureError (hardware, recordings) too
+        what = "out of memory" if isinstance(e, MemoryError) else type(e).__name__
+        print(f"mocap {args.command}: {what}: {e} (MOCAP_DEBUG=1 shows the traceback)",
+              file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"mocap {args.command}: interrupted", file=sys.stderr)
         return 130

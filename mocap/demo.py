@@ -75,9 +75,12 @@ class DemoConfig:
     def __post_init__(self):
         if self.n_cameras < 2:
             raise ValueError(f"n_cameras={self.n_cameras}, expected >= 2")
-        if self.figure_frames < 10 or self.wand_frames < 100:
-            raise ValueError(f"figure_frames={self.figure_frames} (>= 10), "
+        # the skeleton needs motion: below ~100 frames (0.8 s) the figure barely moves
+        if self.figure_frames < 100 or self.wand_frames < 100:
+            raise ValueError(f"figure_frames={self.figure_frames} (>= 100), "
                              f"wand_frames={self.wand_frames} (>= 100)")
+        if self.workers is not None and not 1 <= self.workers <= 64:
+            raise ValueError(f"workers={self.workers}, expected 1..64")
 
 
 @dataclass(frozen=True, kw_only=True)

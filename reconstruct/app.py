@@ -180,6 +180,12 @@ def load_detections(path, rig: Rig | None = None, *, blob_config=None, rate_hz=N
     return det, source
 
 
+#: a recording's frames are mostly seen: detections spanning 100x more frames than they fill
+#: (and more than 100 000) come from a bad frame number, not from occlusion
+MAX_EMPTY_SPAN_RATIO = 100
+MAX_EMPTY_SPAN_MIN = 100_000
+
+
 def run_reconstruct(job: ReconstructJob, progress: Progress | None = None
                     ) -> ReconstructSummary:
     """Read, reconstruct, write ``job.output``; return the summary."""
@@ -203,6 +209,12 @@ def run_reconstruct(job: ReconstructJob, progress: Progress | None = None
         raise ValueError(f"{job.input}: the frame rate is unknown; give it (--rate)")
     if len(det) == 0:
         raise ValueError(f"{job.input}: no 2D detections")
+    frames = np.unique(det.frame)
+    span = int(frames[-1] - frames[0] + 1)
+    if span > MAX_EMPTY_SPAN_RATIO * frames.size and span > MAX_EMPTY_SPAN_MIN:
+        raise ValueError(f"{job.input}: detections span frames {frames[0]}..{frames[-1]} "
+                         f"({span} frames) but only {frames.size} frames hold any: a frame "
+                         f"number is wrong (the trajectories would hold {span} rows)")
     workers = job.workers or (os.cpu_count() or 1)
     t0 = time.perf_counter()
     clouds, traj = reconstruct_sequence(

@@ -18,12 +18,38 @@ from pathlib import Path
 
 
 
+def _toml_output(inputs: dict, output, extra: dict | None = None) -> None:
+    """The calibration TOML (and its report files) may not overwrite an input."""
+    from mocap.paths import check_outputs
+    if Path(output).suffix.lower() != ".toml":
+        raise ValueError(f"-o {output}: a calibration file ends in .toml")
+    check_outputs(inputs, {"-o": output, **(extra or {})})
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        w = h = 0
+    if not (0 < w <= 100_000 and 0 < h <= 100_000):
+        raise ValueError(f"--size {text!r}: expected WxH in pixels, e.g. 1280x1024")
+    return w, h
+
+
 def _wand(args) -> int:
+    import math
+
     from calibration.camera import Camera
     from calibration.rig_io import load_rig, save_rig
     from calibration.wand import calibrate_wand
     from reconstruct.app import load_detections
 
+    out = Path(args.output)
+    _toml_output({"the input": args.input, "--intrinsics": args.intrinsics}, out,
+                 {"its report": out.with_suffix(".report.txt"),
+                  "its report figure": out.with_suffix(".report.png")})
+    if args.focal_px is not None and not (math.isfinite(args.focal_px) and args.focal_px > 0):
+        raise ValueError(f"--focal-px {args.focal_px}: expected a focal length > 0 (pixels)")
     rig0 = None
     if args.intrinsics:
         rig0 = load_rig(args.intrinsics)
@@ -34,7 +60,7 @@ def _wand(args) -> int:
         if args.focal_px is None or args.size is None:
             print("error: give --intrinsics FILE or --focal-px F --size WxH", file=sys.stderr)
             return 2
-        w, h = (int(v) for v in args.size.lower().split("x"))
+        w, h = _size(args.size)
         init = [Camera.from_params(name=n, size=(w, h), fx=args.focal_px)
                 for n in det.camera_names]
     wand_mm = tuple(float(v) for v in args.wand_mm.split(","))
@@ -44,7 +70,6 @@ def _wand(args) -> int:
     if not res.ok:
         print(f"calibration failed: {res.reason}", file=sys.stderr)
         return 1
-    out = Path(args.output)
     save_rig(res.rig, out)
     text = res.report.summary()
     out.with_suffix(".report.txt").write_text(text + "\n")
@@ -55,18 +80,26 @@ def _wand(args) -> int:
 
 
 def _parse_board(spec: str) -> dict:
+    import math
+
     parts = spec.split(":")
     kind = parts[0].lower()
+
+    def plausible(cols, rows, *mm):     # a printed board: 2-100 per side, 0-1000 mm squares
+        return (2 <= cols <= 100 and 2 <= rows <= 100
+                and all(math.isfinite(v) and 0 < v < 1000 for v in mm))
     try:
         if kind == "chessboard" and len(parts) == 3:
             cols, rows = (int(v) for v in parts[1].lower().split("x"))
-            return dict(kind=kind, cols=cols, rows=rows, square_m=float(parts[2]) / 1000.0)
+            if plausible(cols, rows, float(parts[2])):
+                return dict(kind=kind, cols=cols, rows=rows, square_m=float(parts[2]) / 1000.0)
         if kind == "charuco" and len(parts) in (4, 5, 6) and parts[5:] in ([], ["legacy"]):
             cols, rows = (int(v) for v in parts[1].lower().split("x"))
-            return dict(kind=kind, cols=cols, rows=rows, square_m=float(parts[2]) / 1000.0,
-                        marker_m=float(parts[3]) / 1000.0,
-                        dictionary=parts[4] if len(parts) >= 5 else "DICT_5X5_100",
-                        legacy=parts[5:] == ["legacy"])
+            if plausible(cols, rows, float(parts[2]), float(parts[3])):
+                return dict(kind=kind, cols=cols, rows=rows, square_m=float(parts[2]) / 1000.0,
+                            marker_m=float(parts[3]) / 1000.0,
+                            dictionary=parts[4] if len(parts) >= 5 else "DICT_5X5_100",
+                            legacy=parts[5:] == ["legacy"])
     except ValueError:
         pass
     raise ValueError(f"--board {spec!r}: expected chessboard:COLSxROWS:SQUARE_MM (inner corners) "
@@ -81,6 +114,7 @@ def _intrinsics(args) -> int:
     from calibration.rig_io import save_rig
     try:
         board = _parse_board(args.board)
+        _toml_output({f"image {f}": f for f in args.images}, args.output)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -132,6 +166,11 @@ def _world(args) -> int:
     from calibration.static_markers import static_points
     from calibration.world import align_floor, align_world
     from reconstruct.app import load_detections
+    import math
+
+    _toml_output({"the input": args.input, "the calibration": args.calibration}, args.output)
+    if not (math.isfinite(args.gate_px) and args.gate_px > 0):
+        raise ValueError(f"--gate-px {args.gate_px}: expected a distance > 0 (pixels)")
     rig = load_rig(args.calibration)
     modes = sum(bool(m) for m in (args.l_frame, args.reference_mm, args.floor))
     if modes != 1:

@@ -1,6 +1,7 @@
 """``mocap capture``: record cameras + sync box to a session folder (or a simulated rig)."""
 from __future__ import annotations
 
+import math
 import shutil
 import sys
 from pathlib import Path
@@ -47,6 +48,20 @@ def _status(line: str) -> None:
 def run(args) -> int:
     if args.sim == bool(args.camera):
         raise ValueError("give either --sim or one or more --camera /dev/videoN")
+    if args.sim and args.sync:
+        raise ValueError("--sync is for real cameras; --sim runs its own simulated sync box")
+    if not (args.duration > 0 and math.isfinite(args.duration)):
+        raise ValueError(f"--duration {args.duration}: expected a finite duration > 0 (s)")
+    if (Path(args.out) / "metadata.json").exists():       # before anything is written there
+        raise ValueError(f"{args.out} already holds a recording")
+    if args.sim and not all(16 <= v <= 8192 for v in args.size):
+        raise ValueError(f"--size {args.size[0]} {args.size[1]}: expected 16..8192 px each")
+    if args.calibration is not None:
+        # the recording names it for later reprocessing: an absolute path, that exists now
+        cal = Path(args.calibration).resolve()
+        if not cal.is_file():
+            raise FileNotFoundError(f"--calibration {args.calibration}: file not found")
+        args.calibration = str(cal)
     settings = CameraSettings(rate_hz=args.rate, exposure_us=args.exposure_us, gain=args.gain,
                               pixel_format=PixelFormat[args.pixel_format]
                               if args.pixel_format else None)
@@ -90,6 +105,11 @@ def run(args) -> int:
             sim_box.close()
     s, r = result.session, result.recording
     sys.stderr.write("\n")
+    if s.frame_sets == 0:
+        lost = "; ".join(f"{c.camera_id}: {c.error}" for c in s.cameras if not c.connected)
+        sys.stderr.write(f"mocap capture: no frame set was recorded to {result.folder}"
+                         + (f" ({lost})" if lost else "") + "\n")
+        return 1
     print(f"recorded {s.frame_sets} frame sets ({s.complete_sets} complete) in "
           f"{s.elapsed_s:.1f} s to {result.folder}")
     print(f"{'camera':<10} {'frames':>7} {'drops':>6} {'late':>5} {'nopulse':>8} "

@@ -47,9 +47,12 @@ class _Status:
 
 
 def run(args) -> int:
+    from mocap.paths import check_outputs
     from reconstruct.app import ReconstructJob, run_reconstruct
     from reconstruct.pipeline import ReconstructionConfig
 
+    check_outputs({"the input": args.input, "--calibration": args.calibration},
+                  {"-o": args.out})
     cfg = ReconstructionConfig(fill_max_gap=args.fill_max_gap, filter_cutoff_hz=args.cutoff_hz)
     job = ReconstructJob(input=args.input, calibration=args.calibration, output=args.out,
                          config=cfg, rate_hz=args.rate, workers=args.workers)

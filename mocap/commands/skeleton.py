@@ -19,6 +19,7 @@ POOR_FIT_MM = 10.0
 
 
 def _run(args) -> int:
+    from mocap.paths import check_outputs
     from reconstruct.marker_files import read_markers
     from skeleton.app import run_skeleton, write_outputs
     from skeleton.report import summary_table
@@ -26,7 +27,8 @@ def _run(args) -> int:
     def say(msg):
         print(f"[skeleton] {msg}", file=sys.stderr, flush=True)
 
-    _check_outputs(args.input, args.output, args.report)
+    check_outputs({"the input": args.input}, {"-o": args.output, "--report": args.report},
+                  existing_folder=True)
     if Path(args.output).suffix.lower() != ".bvh":
         say(f"warning: {args.output} does not end in .bvh (a BVH file is written)")
     with warnings.catch_warnings():
@@ -58,24 +60,6 @@ def _run(args) -> int:
     for p in paths:
         print(f"wrote {p}")
     return 0
-
-
-def _check_outputs(input_path, output, report) -> None:
-    """Before any work: each output is a file path in an existing folder, and no two of
-    input, output and report are the same file (a BVH written over its own input)."""
-    taken = {"the input": Path(input_path).resolve()}
-    for flag, path in (("-o", output), ("--report", report)):
-        if path is None:
-            continue
-        full = Path(path).resolve()
-        if full.is_dir():
-            raise ValueError(f"{flag} {path} is a folder, expected a file path")
-        if not full.parent.is_dir():
-            raise ValueError(f"{flag} {path}: folder {full.parent} does not exist")
-        for name, other in taken.items():
-            if full == other:
-                raise ValueError(f"{flag} {path} is the same file as {name}")
-        taken[flag] = full
 
 
 def register(subparsers) -> None:
