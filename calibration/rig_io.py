@@ -88,8 +88,10 @@ def load_rig(path) -> Rig:
     try:
         with open(path, "rb") as f:
             doc = tomllib.load(f)
-    except tomllib.TOMLDecodeError as e:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise CalibrationFileError(f"{path}: malformed TOML: {e}") from e
+    except IsADirectoryError as e:
+        raise CalibrationFileError(f"{path}: a folder, expected a calibration TOML") from e
     meta = doc.get("metadata", {})
     sections = {k: v for k, v in doc.items() if k != "metadata" and isinstance(v, dict)}
     if not sections:

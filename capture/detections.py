@@ -159,8 +159,13 @@ def read_detections_csv(path, camera_names: Sequence[str] | None = None,
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"2D observation file not found: {path}")
+    if not path.is_file():
+        raise ValueError(f"{path}: not a file")
     header_names = None
-    lines = path.read_text().splitlines()
+    try:
+        lines = path.read_text().splitlines()
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a text CSV ({e.reason} at byte {e.start})") from e
     data_lines = []
     for ln in lines:
         if ln.startswith("#"):

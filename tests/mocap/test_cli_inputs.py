@@ -150,3 +150,16 @@ def test_a_camera_left_without_observations_fails_the_calibration(tmp_path, wand
     assert main(["calibrate", "wand", str(csv), "--focal-px", "1e12", "--size", "1280x1024",
                  "-o", str(out)]) == 1
     assert "wand observations" in _err(capsys) and not out.exists()
+
+
+def test_binary_files_are_named(tmp_path, wand_csv, capsys):
+    _, csv, toml = wand_csv
+    junk = bytes([0xff, 0xfe, 0x00, 0x81]) * 20
+    (tmp_path / "b.csv").write_bytes(junk)
+    (tmp_path / "b.toml").write_bytes(junk)
+    assert main(["reconstruct", str(csv), "--calibration", str(tmp_path / "b.toml"),
+                 "-o", str(tmp_path / "m.c3d")]) == 2
+    assert "b.toml: malformed TOML" in _err(capsys)
+    assert main(["reconstruct", str(tmp_path / "b.csv"), "--calibration", str(toml),
+                 "-o", str(tmp_path / "m.c3d")]) == 2
+    assert "b.csv: not a text CSV" in _err(capsys)
