@@ -24,11 +24,16 @@ RMS_REL = 0.2                # per-coordinate reprojection RMS within 20% of the
 SD_FLOOR_REL = 0.2
 
 
+def _intrinsics_of(rig):
+    """The rig's true intrinsics, with no pose (what a wand calibration starts from)."""
+    return [Camera(name=c.name, size=c.size, K=c.K, dist=c.dist) for c in rig]
+
+
 def _setup(n_cams, n_frames, noise, seed=1, spurious=0.0):
     rig = make_rig(n_cams, rng=seed)
     ob = observe(rig, wand(n_frames, rng=seed + 1), rng=seed + 2, noise_px=noise,
                  spurious_per_frame=spurious)
-    init = [Camera(name=c.name, size=c.size, K=c.K, dist=c.dist) for c in rig]
+    init = _intrinsics_of(rig)
     return rig, ob, init
 
 
@@ -84,7 +89,7 @@ def test_single_point_mode_recovers_shape():
     d = ob.detections
     det = Detections2D(frame=d.frame[keep], camera=d.camera[keep], xy=d.xy[keep],
                        camera_names=d.camera_names)
-    init = [Camera(name=c.name, size=c.size, K=c.K, dist=c.dist) for c in rig]
+    init = _intrinsics_of(rig)
     res = calibrate_wand(det, initial_intrinsics=init, single_point=True)
     assert res.ok, res.reason
     # similarity: scale from the camera 0 - camera 1 baseline
@@ -136,7 +141,7 @@ BLOB_ORDER_M = 1e-6   # reordered blobs change float summation order only (measu
 def test_two_marker_wand_with_noise():
     rig = make_rig(6, rng=1)
     ob = observe(rig, wand(300, spacing_mm=(0.0, 500.0), rng=2), rng=3, noise_px=NOISE_PX)
-    init = [Camera(name=c.name, size=c.size, K=c.K, dist=c.dist) for c in rig]
+    init = _intrinsics_of(rig)
     res = calibrate_wand(ob.detections, initial_intrinsics=init, wand_mm=(0.0, 500.0))
     assert res.ok, res.reason
     dc, da = _errors(res.rig, rig)
@@ -151,7 +156,7 @@ def test_same_input_same_result_whatever_the_seed(spacing):
     rig = make_rig(5, rng=1)
     ob = observe(rig, wand(200, spacing_mm=spacing, rng=2), rng=3, noise_px=NOISE_PX,
                  spurious_per_frame=1.0)
-    init = [Camera(name=c.name, size=c.size, K=c.K, dist=c.dist) for c in rig]
+    init = _intrinsics_of(rig)
     runs = [calibrate_wand(ob.detections, initial_intrinsics=init, wand_mm=spacing, rng=s)
             for s in (0, 1, 12345, None)]
     for r in runs[1:]:
@@ -203,7 +208,7 @@ def test_recovery_pass_fills_camera_frames_with_extra_blobs():
     rig = make_rig(6, rng=1)
     ob = observe(rig, wand(300, spacing_mm=(0.0, 500.0), rng=2), rng=3, noise_px=NOISE_PX,
                  spurious_per_frame=1.0)
-    init = [Camera(name=c.name, size=c.size, K=c.K, dist=c.dist) for c in rig]
+    init = _intrinsics_of(rig)
     off = calibrate_wand(ob.detections, initial_intrinsics=init, wand_mm=(0.0, 500.0),
                          recover_gate_px=None)
     on = calibrate_wand(ob.detections, initial_intrinsics=init, wand_mm=(0.0, 500.0))

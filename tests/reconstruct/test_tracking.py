@@ -45,6 +45,11 @@ def _owner(traj, clouds, truth):
     return own
 
 
+def _pure(own) -> bool:
+    """Every track holds samples of exactly one true marker (``_owner``; -1/-2 ignored)."""
+    return all(len(set(own[:, m][own[:, m] >= 0].tolist())) == 1 for m in range(own.shape[1]))
+
+
 def test_no_swaps_through_motion_and_short_gaps():
     scene = moving_markers(40, 360, RATE_HZ, rng=1, speed_mps=1.5, n_occluders=0)
     P = scene.positions
@@ -119,8 +124,7 @@ def test_marker_reappearing_beside_a_vanishing_one_is_not_swapped():
     clouds, truth = _clouds(P, present, 1)
     traj = track(clouds)
     own = _owner(traj, clouds, truth)
-    for m in range(traj.n_markers):
-        assert len(set(own[:, m][own[:, m] >= 0].tolist())) == 1
+    assert _pure(own)
     assert traj.n_markers == 4
 
 
@@ -183,8 +187,7 @@ def test_merged_markers_end_both_tracks():
     linked = track(clouds, TrackingConfig(max_gap_frames=MAX_GAP))
     own_l = _owner(linked, clouds, truth)
     assert linked.n_markers < traj.n_markers
-    for m in range(linked.n_markers):
-        assert len(set(own_l[:, m][own_l[:, m] >= 0].tolist())) == 1
+    assert _pure(own_l)
     # without the rule the tracker carries A's identity into the merged point
     off = track(clouds, TrackingConfig(max_gap_frames=MAX_GAP, merge_radius_m=None,
                                        relink_max_gap=None))
@@ -249,16 +252,14 @@ def test_relink_refuses_two_continuations_within_the_margin():
     clouds, truth = _clouds(P, present, 12)
     traj = track(clouds, TrackingConfig(max_gap_frames=MAX_GAP))
     own = _owner(traj, clouds, truth)
-    for m in range(traj.n_markers):
-        assert len(set(own[:, m][own[:, m] >= 0].tolist())) == 1
+    assert _pure(own)
     first = [m for m in range(traj.n_markers) if own[0, m] == 0]
     assert len(first) == 1 and np.flatnonzero(own[:, first[0]] >= 0).max() == 60
     loose = track(clouds, TrackingConfig(max_gap_frames=MAX_GAP, relink_margin_m=0.001))
     own = _owner(loose, clouds, truth)
     m0 = [m for m in range(loose.n_markers) if own[0, m] == 0]
     assert len(m0) == 1 and np.flatnonzero(own[:, m0[0]] >= 0).max() == 119
-    for m in range(loose.n_markers):
-        assert len(set(own[:, m][own[:, m] >= 0].tolist())) == 1
+    assert _pure(own)
     with pytest.raises(ValueError, match="relink_max_gap"):
         TrackingConfig(relink_max_gap=-1)
     with pytest.raises(ValueError, match="relink_fit_frames"):
