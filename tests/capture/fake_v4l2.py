@@ -2,15 +2,30 @@
 
 It uses linuxpy's real ctypes structures (``raw.v4l2_buffer``, ``raw.v4l2_format``) so the
 driver's field handling is exercised; readiness is a real pipe so ``select`` works.
+
+``FakeVideoDevices`` serves several such kernels behind device nodes (FIFOs the driver opens
+with plain ``os.open``, as it opens ``/dev/videoN``) and ``TriggeredSensor`` is the sensor
+behind one: exposures started by a ``hw_sim`` sync box's trigger line, images rendered by
+``hw_sim.render``. Together they let sessions and ``mocap capture`` run the real
+``V4L2Camera`` on the simulated rig; the only thing faked is the kernel.
 """
 from __future__ import annotations
 
 import errno
 import fractions
 import os
+import queue
+import threading
+import time
+from collections import deque
+from pathlib import Path
 
+import cv2
 import numpy as np
 from linuxpy.video import raw
+
+from hw_sim.render import render_frame
+from hw_sim.sim_camera import orbiting_markers
 
 SUPPORTED_SIZES = [(320, 240), (640, 480)]
 SUPPORTED_FPS = [30, 60, 75, 125, 187]
@@ -41,16 +56,27 @@ class FakeKernel:
         self.gone = False
         self.set_calls = []
         self.has_parm = has_parm        # False: the driver has no G_PARM/S_PARM ioctls
+        self.node_ino = None            # inode of the device node, when behind one
+        self.lock = threading.RLock()   # the ioctls and the sensor's deliveries
 
     def opener(self, path, flags):
         if self.gone:
             raise FileNotFoundError(errno.ENOENT, "No such device", path)
         return self.rfd
 
+    def attach(self, node) -> None:
+        """Serve the device node ``node`` (a FIFO): any fd the driver opens on it is this
+        device, and readiness is signalled through it instead of the private pipe."""
+        os.close(self.rfd)
+        os.close(self.wfd)
+        self.rfd = self.wfd = os.open(node, os.O_RDWR | os.O_NONBLOCK)
+        self.node_ino = os.fstat(self.rfd).st_ino
+
     def _check(self, fd):
         if self.gone:
             raise OSError(errno.ENODEV, "No such device")
-        assert fd == self.rfd
+        assert fd == self.rfd or (self.node_ino is not None
+                                  and os.fstat(fd).st_ino == self.node_ino)
 
     # -- formats, rate, controls --------------------------------------------------------
     def set_format(self, fd, bt, w, h, pixel_format):
@@ -144,3 +170,160 @@ class FakeKernel:
     def enqueue_buffer_raw(self, fd, buf):
         self._check(fd)
         self.free.append(buf.index)
+
+
+class FakeVideoDevices:
+    """Stands for the linuxpy ``video.device`` module (``V4L2Camera(lp=...)``, or what
+    ``capture.v4l2._linuxpy`` returns): each call goes to the FakeKernel behind the fd's
+    device node. Nodes are FIFOs in ``folder``, opened by the driver with ``os.open``."""
+
+    raw = raw
+    _CALLS = {"set_format", "get_raw_format", "set_fps", "get_fps", "get_control",
+              "set_control", "create_mmap_buffers", "enqueue_buffers", "stream_on",
+              "stream_off", "free_buffers", "dequeue_buffer", "enqueue_buffer_raw"}
+
+    def __init__(self, folder):
+        self.folder = Path(folder)
+        self.kernels: dict[str, FakeKernel] = {}
+        self._by_ino: dict[int, FakeKernel] = {}
+
+    def add(self, name: str, kernel: FakeKernel | None = None) -> tuple[str, FakeKernel]:
+        """A new device node ``folder/name``; returns its path and its kernel."""
+        path = self.folder / name
+        os.mkfifo(path)
+        k = kernel if kernel is not None else FakeKernel()
+        k.attach(path)
+        self.kernels[str(path)] = k
+        self._by_ino[k.node_ino] = k
+        return str(path), k
+
+    def __getattr__(self, name):
+        if name not in self._CALLS:
+            raise AttributeError(name)
+
+        def call(fd, *args):
+            try:
+                k = self._by_ino[os.fstat(fd).st_ino]
+            except (KeyError, OSError):
+                raise OSError(errno.ENOTTY, "Inappropriate ioctl for device") from None
+            with k.lock:
+                return getattr(k, name)(fd, *args)
+        return call
+
+    def close(self) -> None:
+        for k in self.kernels.values():
+            try:
+                os.close(k.rfd)
+            except OSError:
+                pass
+
+
+def pack_image(img: np.ndarray, fmt: str, stride: int) -> bytes:
+    """A (H, W) image as the bytes of one buffer in V4L2 format ``fmt`` (rows ``stride``
+    bytes apart; MJPG: a JPEG)."""
+    if fmt == "MJPG":
+        ok, jpg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        return jpg.tobytes()
+    if fmt == "YUYV":
+        row = np.full((img.shape[0], 2 * img.shape[1]), 128, np.uint8)
+        row[:, 0::2] = img
+    elif fmt == "GREY":
+        row = img.astype(np.uint8)
+    else:                                           # Y10 (right-aligned), Y16: little endian
+        row = img.astype("<u2").view(np.uint8).reshape(img.shape[0], -1)
+    out = np.zeros((img.shape[0], stride), np.uint8)
+    out[:, :row.shape[1]] = row
+    return out.tobytes()
+
+
+_BITS = {"GREY": 8, "YUYV": 8, "MJPG": 8, "Y10 ": 10, "Y16 ": 16}
+
+
+class TriggeredSensor:
+    """The sensor behind a FakeKernel, its trigger input wired to a ``SimSyncBox``.
+
+    At each pulse of the box's trigger line it exposes a frame of ``model`` (a hw_sim camera
+    model, size = the kernel's) showing ``scene`` at the pulse time, rendered by
+    ``hw_sim.render``; after ``latency_ms`` the frame goes into the kernel's next free buffer
+    (packed in the format the driver configured) with the pulse time (+ jitter) as its
+    start-of-exposure timestamp. With no free buffer, or while the trigger queue is full,
+    the frame is dropped and its sequence number consumed, as a V4L2 driver does. Frames are
+    delivered only while streaming.
+
+    Ground truth, like ``SimCamera``: ``truth[sequence] = (pulse index, pulse host ns)`` and
+    ``dropped_sequences``; ``camera_id`` is the model name.
+    """
+
+    def __init__(self, kernel: FakeKernel, model, sync, *, scene=None, latency_ms=3.0,
+                 timestamp_jitter_us=20.0, time_origin_ns=0, rng=None):
+        if tuple(kernel.size) != tuple(model.size):
+            raise ValueError(f"model size {model.size} != sensor size {kernel.size}")
+        self.kernel, self.model, self.sync = kernel, model, sync
+        self.scene = scene if scene is not None else orbiting_markers()
+        self.latency_ns = int(latency_ms * 1e6)
+        self.jitter_ns = timestamp_jitter_us * 1e3
+        self.time_origin_ns = int(time_origin_ns)
+        self.rng = np.random.default_rng(rng)
+        self.truth: dict[int, tuple[int, float]] = {}
+        self.dropped_sequences: deque[int] = deque(maxlen=100_000)
+        self.error: BaseException | None = None
+        self._triggers: queue.Queue = queue.Queue(maxsize=64)
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+
+    @property
+    def camera_id(self) -> str:
+        return self.model.name
+
+    def start(self) -> "TriggeredSensor":
+        self._stop.clear()
+        self._worker = threading.Thread(target=self._work, daemon=True,
+                                        name=f"sensor {self.camera_id}")
+        self._worker.start()
+        self.sync.add_trigger_listener(self._on_trigger)
+        return self
+
+    def stop(self) -> None:
+        self.sync.remove_trigger_listener(self._on_trigger)
+        self._stop.set()
+        if self._worker is not None:
+            self._worker.join(timeout=2.0)
+
+    def _on_trigger(self, ev) -> None:
+        try:
+            self._triggers.put_nowait((ev.index, ev.host_ns))
+        except queue.Full:                 # exposed, nowhere to put it: a consumed sequence
+            k = self.kernel
+            with k.lock:
+                if k.streaming:
+                    self.dropped_sequences.append(k.seq)
+                    k.seq += 1
+
+    def _work(self) -> None:
+        k = self.kernel
+        try:
+            while not self._stop.is_set():
+                try:
+                    index, pulse_ns = self._triggers.get(timeout=0.05)
+                except queue.Empty:
+                    continue
+                with k.lock:
+                    fmt = k.fmt
+                    stride = k.get_raw_format(k.rfd, None).fmt.pix.bytesperline
+                pts, diam = self.scene((pulse_ns - self.time_origin_ns) * 1e-9)
+                img, _ = render_frame(self.model, pts, diam, self.rng, bit_depth=_BITS[fmt])
+                payload = pack_image(img, fmt, stride)
+                ts = int(round(pulse_ns + self.rng.normal(0.0, self.jitter_ns)))
+                wait = (pulse_ns + self.latency_ns - time.monotonic_ns()) * 1e-9
+                if wait > 0 and self._stop.wait(wait):
+                    return
+                with k.lock:
+                    if not k.streaming:
+                        continue
+                    seq = k.seq
+                    self.truth[seq] = (index, pulse_ns)
+                    if not k.expose(payload, ts):
+                        self.dropped_sequences.append(seq)
+        except BaseException as e:  # noqa: BLE001 - reported to the test through .error
+            self.error = e
+            raise

@@ -4,19 +4,24 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from capture.camera import PixelFormat
 from capture.errors import SyncProtocolError
+from capture.frame import TimestampSource
 from capture.live import record_live
 from capture.replay import FrameFileReader, load_metadata, read_recording, recording_frames
-from capture.syncbox import SyncBox, SyncConfig
-from hw_sim.sim_camera import SimCamera, ring_of_cameras, sim_rig
+from hw_sim.sim_camera import ring_of_cameras
 from hw_sim.syncbox import SimSyncBox
 from mocap.cli import main
+
+from .fake_v4l2 import FakeVideoDevices, TriggeredSensor
+from .realtime import assert_missing_frames_are_counted_drops
 
 MIN_SETS_FRACTION = 0.7
 CRASH_LOSS_S = 1.0          # kill -9 may lose at most the last second
@@ -48,24 +53,17 @@ def test_capture_cli_rejects_ambiguous_sources(tmp_path, capsys):
     assert "--sim" in capsys.readouterr().err
 
 
-def test_record_live_goes_on_when_a_camera_is_lost(tmp_path):
-    sim, cams, _ = sim_rig(3, size=(96, 64), rng=4)
+def test_record_live_goes_on_when_a_camera_is_lost(tmp_path, rig_factory):
+    sim, box, cams = rig_factory(3, size=(96, 64), seed=4)
     cams[1].disappear_after_frames = 20
-    box = SyncBox(sim.port)
-    box.configure(SyncConfig(rate_hz=100))
-    try:
-        res = record_live(cams, box, tmp_path / "rec", duration_s=0.8)
-    finally:
-        for c in cams:
-            c.close()
-        box.close()
-        sim.close()
+    res = record_live(cams, box, tmp_path / "rec", duration_s=0.8)
     lost = res.session.cameras[1]
     assert not lost.connected and "cam_2" in lost.error
     sets = list(read_recording(tmp_path / "rec"))
     assert len(sets) == res.session.frame_sets
     assert sum(fs.frames[1] is not None for fs in sets) <= 20
-    assert all(fs.frames[0] is not None for fs in sets[30:])
+    # the others go on: a set lacks their frame only where their driver dropped it
+    assert_missing_frames_are_counted_drops(sets[30:], cams, res.session, which=(0, 2))
     assert np.isfinite(res.recording["compression_ratio"])
     with pytest.raises(ValueError, match="duration"):
         record_live(cams, None, tmp_path / "r2", duration_s=0, rate_hz=10)
@@ -81,71 +79,73 @@ def test_capture_cli_real_form_reports_a_missing_device(tmp_path, capsys):
 
 def test_capture_cli_real_device_form(tmp_path, capsys, monkeypatch):
     """``--camera /dev/videoN ... --sync PORT``: the sync box is opened by its device path
-    (a simulated box's pty); the camera opener is the only thing replaced (no V4L2 here)."""
+    (a simulated box's pty), the cameras by theirs through the real ``V4L2Camera``; only the
+    kernel is simulated (fake_v4l2: device nodes whose sensors expose at the box's trigger
+    line and render the hw_sim scene)."""
     sim = SimSyncBox(rng=3)
-    models = ring_of_cameras(2, size=(96, 64))
-    opened = {}
-
-    def open_camera(path, backend):
-        assert backend == "v4l2"
-        cam = SimCamera(models[len(opened)], sync=sim, rng=len(opened))
-        cam.device = path
-        opened[path] = cam
-        return cam
-
-    monkeypatch.setattr("mocap.commands.capture._open_camera", open_camera)
+    devices = FakeVideoDevices(tmp_path)
+    sensors, paths = [], []
+    for name, model in zip(("video4", "video2"), ring_of_cameras(2, size=(320, 240))):
+        path, kernel = devices.add(name)
+        kernel.size = model.size                  # the sensor's size; format left as YUYV
+        sensors.append(TriggeredSensor(kernel, model, sim, rng=len(paths)).start())
+        paths.append(path)
+    monkeypatch.setattr("capture.v4l2._linuxpy", lambda: devices)   # the kernel interface
     out = tmp_path / "real"
     try:
-        rc = main(["capture", "--camera", "/dev/video4", "--camera", "/dev/video2",
+        rc = main(["capture", "--camera", paths[0], "--camera", paths[1],
                    "--sync", sim.port, "--rate", "50", "--exposure-us", "800",
-                   "--duration", "0.8", "--out", str(out)])
+                   "--pixel-format", "GREY", "--duration", "0.8", "--out", str(out)])
         assert sim.rate_hz == 50.0 and not sim.running       # configured, then stopped
     finally:
+        for s in sensors:
+            s.stop()
+        devices.close()
         sim.close()
     assert rc == 0, capsys.readouterr().err
+    assert [s.error for s in sensors] == [None, None]
+    assert all(not k.streaming and k.fmt == "GREY" for k in devices.kernels.values())
     meta = load_metadata(out)
-    assert meta.complete and meta.devices == ("/dev/video4", "/dev/video2")
+    assert meta.complete and meta.devices == tuple(paths)
     assert meta.sync["port"] == sim.port and meta.sync["rate_hz"] == 50
     assert meta.settings[0].exposure_us == 800.0 and meta.calibration is None
+    assert meta.settings[0].pixel_format == PixelFormat.GREY
     sets = list(read_recording(out))
     assert len(sets) >= MIN_SETS_FRACTION * 50 * 0.8
     for fs in sets:                                # each frame from its own pulse
-        for cam, f in zip(opened.values(), fs.frames):
+        for sensor, f in zip(sensors, fs.frames):
             if f is not None:
-                assert cam.truth[f.sequence][0] == fs.pulse_index
+                assert sensor.truth[f.sequence][0] == fs.pulse_index
+                assert f.image.shape == (240, 320)
+                assert f.timestamp_source == TimestampSource.KERNEL_START_OF_EXPOSURE
 
 
-def test_record_live_closes_the_recording_when_the_box_sends_garbage(tmp_path):
-    sim, cams, _ = sim_rig(2, size=(96, 64), rng=5)
-    box = SyncBox(sim.port, garbage_timeout_s=0.3)
-    box.configure(SyncConfig(rate_hz=100))
-    stop = False
+def test_record_live_closes_the_recording_when_the_box_sends_garbage(tmp_path, rig_factory):
+    sim, box, cams = rig_factory(2, size=(96, 64), seed=5, garbage_timeout_s=0.3)
+    stop = threading.Event()
 
     def spew():
-        while not stop:
+        # the fault comes once the host has received 40 pulses (~0.4 s of recording)
+        while box.stats().pulses < 40:
+            if stop.wait(0.005):
+                return
+        while not stop.wait(0.005):
             sim.inject_garbage(200, with_zeros=False)
-            time.sleep(0.005)
 
-    import threading
-    t = threading.Timer(0.4, spew)
+    t = threading.Thread(target=spew, daemon=True)
     t.start()
     try:
         with pytest.raises(SyncProtocolError, match="no valid frame"):
-            record_live(cams, box, tmp_path / "rec", duration_s=5.0)
+            record_live(cams, box, tmp_path / "rec", duration_s=30.0)
     finally:
-        stop = True
-        t.cancel()
+        stop.set()
         t.join()
-        for c in cams:
-            c.close()
-        box.close()
-        sim.close()
     meta = load_metadata(tmp_path / "rec")
     assert meta.complete                                  # closed cleanly, not torn
     assert "SyncProtocolError" in meta.raw["session_error"] and sim.port in \
         meta.raw["session_error"]
     sets = list(read_recording(tmp_path / "rec"))
-    assert len(sets) == meta.raw["frame_sets"] >= 20      # ~0.4 s at 100 Hz before the fault
+    assert len(sets) == meta.raw["frame_sets"] >= 20      # 40 pulses before the fault
 
 
 def test_kill_minus_9_of_mocap_capture_keeps_all_but_the_last_second(tmp_path):

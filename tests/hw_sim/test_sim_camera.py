@@ -4,40 +4,80 @@ import time
 
 import numpy as np
 import pytest
+import serial
 
 from capture.camera import Camera, CameraSettings, PixelFormat
 from capture.errors import CameraDisconnected
 from capture.frame import TimestampSource
+from capture.sync_protocol import (DecodeError, FrameSplitter, Message, MsgType,
+                                   decode_frame, encode_message)
 from hw_sim.sim_camera import SimCamera, orbiting_markers, ring_of_cameras
 from hw_sim.syncbox import SimSyncBox
+
+from ..capture.realtime import WAIT_TIMEOUT_S, wait_until
 
 JITTER_US = 20.0
 TS_SIGMAS = 6.0          # timestamp noise is N(0, JITTER_US): 6 sigma never trips
 PEAK_PX = 1.5            # brightest pixel of a blob vs its projected centre
-READ_SLACK_S = 0.25      # read(timeout) returns within timeout + scheduling slack
+READ_SLACK_S = 2.0       # read(timeout) returns within timeout + (loaded host) slack
+RATE_MHZ = 100_000       # 100 Hz
 
 
-def _drain(cam, seconds):
-    frames, t_end = [], time.monotonic() + seconds
-    while time.monotonic() < t_end:
+def _read(cam, n):
+    """The next ``n`` frames (fails after WAIT_TIMEOUT_S instead of hanging)."""
+    frames, t_end = [], time.monotonic() + WAIT_TIMEOUT_S
+    while len(frames) < n:
+        assert time.monotonic() < t_end, f"{len(frames)} of {n} frames"
         f = cam.read(0.05)
         if f is not None:
             frames.append(f)
     return frames
 
 
+class _Host:
+    """The host end of the simulated box's pty (pyserial), sending protocol commands."""
+
+    def __init__(self, port):
+        self.ser = serial.Serial(port, timeout=0.02)
+        self.seq = 0
+        self.pulses = {}      # index -> device ticks, from the PULSE messages seen
+        self._split = FrameSplitter()
+
+    def command(self, mtype, **fields):
+        self.seq += 1
+        self.ser.write(encode_message(Message.make(mtype, seq=self.seq, **fields)))
+        reply, t_end = None, time.monotonic() + WAIT_TIMEOUT_S
+        while reply is None:
+            assert time.monotonic() < t_end, f"no reply to {mtype.name}"
+            for fr in self._split.feed(self.ser.read(4096)):
+                try:
+                    m = decode_frame(fr)
+                except DecodeError:          # bytes the box dropped while nobody read
+                    continue
+                if m.type == MsgType.PULSE:
+                    self.pulses[m.index] = m.ticks
+                elif m.type in (MsgType.ACK, MsgType.NAK) and m.seq == self.seq:
+                    reply = m
+        assert reply.type == MsgType.ACK, reply
+        return reply
+
+
 @pytest.fixture
 def box():
     with SimSyncBox(rng=3) as b:
-        b._rate_mhz = 100_000  # drive the box directly (no host driver needed here)
+        host = _Host(b.port)
+        host.command(MsgType.SET_RATE, rate_mhz=RATE_MHZ)
+        b.host = host
         yield b
+        host.ser.close()
 
 
 def _start_box(b):
-    b._period_ticks = b.tick_hz * 1000.0 / b._rate_mhz
-    b._t0_ticks = b.device_ticks(jitter=False) + 2000
-    b._next_index = 0
-    b._running = True
+    b.host.command(MsgType.START)
+
+
+def _stop_box(b):
+    b.host.command(MsgType.STOP)
 
 
 def test_protocol_and_configure_reads_back_applied_values():
@@ -57,18 +97,21 @@ def test_frames_at_pulses_with_sequence_and_kernel_timestamps(box):
     cam = SimCamera(model, scene=scene, sync=box, rng=1, timestamp_jitter_us=JITTER_US)
     cam.start()
     _start_box(box)
-    frames = _drain(cam, 0.5)
+    frames = _read(cam, 30)
+    _stop_box(box)                       # reads the PULSE messages the box sent meanwhile
     cam.close()
-    assert len(frames) >= 30
     seq = np.array([f.sequence for f in frames])
     missing = set(range(int(seq[-1]) + 1)) - set(seq.tolist())
     assert missing == {d for d in cam.dropped_sequences if d <= seq[-1]}  # none unless starved
+    ticks = box.host.pulses
+    assert list(ticks) == list(range(len(ticks)))
+    assert np.all(np.diff(list(ticks.values())) == box.tick_hz * 1000 // RATE_MHZ)
     for f in frames:
         index, pulse_ns = cam.truth[f.sequence]
         assert f.timestamp_source == TimestampSource.KERNEL_START_OF_EXPOSURE
         assert abs(f.timestamp_ns - pulse_ns) < TS_SIGMAS * JITTER_US * 1e3
-        assert pulse_ns == pytest.approx(float(box.true_host_ns(
-            box._t0_ticks + round(index * box._period_ticks))), abs=1)
+        # exposed at the pulse the box announced with that index
+        assert pulse_ns == pytest.approx(float(box.true_host_ns(ticks[index])), abs=1)
     f = frames[-1]
     pts, _ = scene((cam.truth[f.sequence][1]) * 1e-9)
     uv = model.project(pts)
@@ -85,6 +128,7 @@ def test_fileno_is_pollable_and_read_never_blocks_forever():
     t0 = time.monotonic()
     assert cam.read(0.1) is None                       # not started: times out
     assert time.monotonic() - t0 < 0.1 + READ_SLACK_S
+    assert not select.select([cam.fileno()], [], [], 0)[0]
     cam.start()
     r, _, _ = select.select([cam.fileno()], [], [], 1.0)
     assert r == [cam.fileno()]
@@ -97,7 +141,7 @@ def test_drops_show_as_sequence_gaps(box):
     cam.drop_probability = 0.3
     cam.start()
     _start_box(box)
-    frames = _drain(cam, 0.6)
+    frames = _read(cam, 40)
     cam.close()
     seq = np.array([f.sequence for f in frames])
     gaps = int(np.sum(np.diff(seq) - 1)) + int(seq[0])
@@ -110,13 +154,15 @@ def test_full_buffers_drop_frames_when_reader_stalls(box):
     cam = SimCamera(ring_of_cameras(1)[0], sync=box, n_buffers=3, rng=5)
     cam.start()
     _start_box(box)
-    time.sleep(0.3)
-    box._running = False
+    wait_until(lambda: cam.frames_dropped > 10, what="drops while nobody reads")
+    _stop_box(box)
     frames = []
     while (f := cam.read(0)) is not None:
         frames.append(f)
     cam.close()
-    assert len(frames) <= 3 and cam.frames_dropped > 10
+    # the three buffers kept the first three frames; every later one was dropped
+    assert [f.sequence for f in frames] == [0, 1, 2]
+    assert set(cam.dropped_sequences) == set(range(3, cam.frames_exposed))
 
 
 def test_disappear_raises_disconnected(box):
