@@ -207,6 +207,10 @@ def run_reconstruct(job: ReconstructJob, progress: Progress | None = None
     detect_s = time.perf_counter() - t0
     if not det.rate_hz:
         raise ValueError(f"{job.input}: the frame rate is unknown; give it (--rate)")
+    cut = job.config.filter_cutoff_hz
+    if cut is not None and not cut < det.rate_hz / 2:
+        raise ValueError(f"cutoff {cut:g} Hz: at {det.rate_hz:g} Hz the low-pass cutoff must "
+                         f"be below {det.rate_hz / 2:g} Hz (Nyquist)")
     if len(det) == 0:
         raise ValueError(f"{job.input}: no 2D detections")
     frames = np.unique(det.frame)

@@ -36,6 +36,19 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _wand_mm(text: str) -> tuple[float, ...]:
+    """--wand-mm: 2 or 3 finite, distinct marker positions along the wand (mm)."""
+    import math
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        v = ()
+    if not (len(v) in (2, 3) and all(math.isfinite(x) for x in v) and len(set(v)) == len(v)):
+        raise ValueError(f"--wand-mm {text!r}: expected 2 or 3 distinct marker positions "
+                         f"along the wand in mm, e.g. 0,250,500")
+    return v
+
+
 def _wand(args) -> int:
     import math
 
@@ -50,6 +63,7 @@ def _wand(args) -> int:
                   "its report figure": out.with_suffix(".report.png")})
     if args.focal_px is not None and not (math.isfinite(args.focal_px) and args.focal_px > 0):
         raise ValueError(f"--focal-px {args.focal_px}: expected a focal length > 0 (pixels)")
+    wand_mm = _wand_mm(args.wand_mm)
     rig0 = None
     if args.intrinsics:
         rig0 = load_rig(args.intrinsics)
@@ -63,7 +77,6 @@ def _wand(args) -> int:
         w, h = _size(args.size)
         init = [Camera.from_params(name=n, size=(w, h), fx=args.focal_px)
                 for n in det.camera_names]
-    wand_mm = tuple(float(v) for v in args.wand_mm.split(","))
     res = calibrate_wand(det, initial_intrinsics=init, wand_mm=wand_mm,
                          single_point=args.single_point, refine_intrinsics=args.refine_intrinsics,
                          rng=args.seed, progress=lambda s: print(s, file=sys.stderr))

@@ -66,6 +66,7 @@ def run(args) -> int:
                               pixel_format=PixelFormat[args.pixel_format]
                               if args.pixel_format else None)
     sim_box, cameras, box = None, [], None
+    made = []                      # what this run created before its recording started
     try:
         if args.sim:
             from calibration.rig_io import save_rig
@@ -73,8 +74,11 @@ def run(args) -> int:
             sim_box, cameras, rig = sim_rig(args.cameras, size=tuple(args.size), rng=args.seed)
             port = sim_box.port
             if args.calibration is None:  # the simulated rig's true calibration, inside
-                Path(args.out).mkdir(parents=True, exist_ok=True)
-                save_rig(rig, Path(args.out) / "sim_rig.toml")
+                out = Path(args.out)
+                if not out.exists():
+                    made.append(out)
+                out.mkdir(parents=True, exist_ok=True)
+                made.append(save_rig(rig, out / "sim_rig.toml"))
                 args.calibration = "sim_rig.toml"
         else:
             cameras = [_open_camera(path, args.backend) for path in args.camera]
@@ -87,8 +91,17 @@ def run(args) -> int:
         result = record_live(cameras, box, args.out, duration_s=args.duration,
                              rate_hz=args.rate, calibration=args.calibration, on_status=_status)
     except CaptureError as e:
-        sys.stderr.write(f"\nmocap capture: {type(e).__name__}: {e}\n"
-                         f"(recording in {args.out} closed; frames before the fault are kept)\n")
+        if (Path(args.out) / "metadata.json").exists():
+            kept = f"recording in {args.out} closed; frames before the fault are kept"
+        else:                      # the fault came before the recording: leave nothing behind
+            for path in reversed(made):
+                if path.is_dir():
+                    if not any(path.iterdir()):
+                        path.rmdir()
+                else:
+                    path.unlink(missing_ok=True)
+            kept = "no recording was made"
+        sys.stderr.write(f"\nmocap capture: {type(e).__name__}: {e}\n({kept})\n")
         return 1
     except KeyboardInterrupt:
         sys.stderr.write(f"\nmocap capture: interrupted (recording in {args.out} closed)\n")

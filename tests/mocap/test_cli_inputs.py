@@ -163,3 +163,20 @@ def test_binary_files_are_named(tmp_path, wand_csv, capsys):
     assert main(["reconstruct", str(tmp_path / "b.csv"), "--calibration", str(toml),
                  "-o", str(tmp_path / "m.c3d")]) == 2
     assert "b.csv: not a text CSV" in _err(capsys)
+
+
+def test_late_checks_come_before_the_work(tmp_path, wand_csv, capsys):
+    """A low-pass cutoff above Nyquist is refused before the reconstruction, a wand spacing
+    that is not 2-3 distinct finite positions before the detection; a capture whose camera
+    is missing says no recording was made, and leaves no folder behind."""
+    _, csv, toml = wand_csv
+    assert main(["reconstruct", str(csv), "--calibration", str(toml), "--rate", "100",
+                 "--cutoff-hz", "60", "-o", str(tmp_path / "m.c3d")]) == 2
+    err = _err(capsys)
+    assert "below 50 Hz (Nyquist)" in err and "reconstruction" not in err
+    assert main(["calibrate", "wand", str(csv), "--focal-px", "1000", "--size", "1280x1024",
+                 "--wand-mm", "0,nan,500", "-o", str(tmp_path / "c.toml")]) == 2
+    assert "--wand-mm '0,nan,500'" in _err(capsys)
+    out = tmp_path / "s"
+    assert main(["capture", "--camera", str(tmp_path / "video99"), "--out", str(out)]) == 1
+    assert "no recording was made" in _err(capsys) and not out.exists()
