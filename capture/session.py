@@ -214,6 +214,10 @@ class CaptureSession:
         dropped it): an overloaded host does not lose the frames of the last pulses."""
         if not self._stop.is_set():
             if self.sync is not None:
+                # drain from the moment STOP is sent: the box's reply can take a while on a
+                # loaded host, and sets completing meanwhile must not time out at the normal
+                # wait and drop frames that are still on their way
+                self._draining = True
                 try:
                     self.sync.stop()
                 except CaptureError:

@@ -183,7 +183,7 @@ def test_stop_drains_the_frames_of_the_last_pulses(rig):
     (up to max_wait_cap_s) instead of closing the last sets without them."""
     sim, box, cams = rig
     # the normal wait is long enough that the sets of the slow pulses are still open when
-    # stop() begins on a loaded host (it starts draining after the STOP round trip)
+    # stop() begins on a loaded host (it drains from the moment it sends STOP)
     late_s, wait_s, cap_s = 1.0, 0.5, 30.0
     sets = []
     session = CaptureSession(cams, box, on_frame_set=sets.append, adaptive_wait=False,
