@@ -8,13 +8,11 @@ from hw_sim.scenes import static_markers
 from reconstruct.correspondence import (CorrespondenceConfig, epipolar_geometry,
                                         match_frame)
 from reconstruct.triangulation import rig_arrays
-from tests.reconstruct.simdata import match_points, reconstructable
+from tests.reconstruct.simdata import (MAX_SPURIOUS, MIN_FOUND, NOISE_PX, match_points,
+                                       reconstructable)
 
-NOISE_PX = 0.05
 SPURIOUS_PER_CAMERA_FRAME = 0.4   # ~1% of the blobs of 40 markers
 MATCH_TOL_M = 0.005               # a point within this of a true marker is that marker
-MIN_FOUND = 0.995                 # acceptance: reconstructable markers found
-MAX_SPURIOUS = 0.002              # acceptance: spurious 3D points
 POINT_ERR_M = 0.001               # largest 3D error of a correct point at 0.05 px noise
                                   # (0.44-0.76 mm measured with 3, 8 and 12 cameras)
 

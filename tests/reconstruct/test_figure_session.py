@@ -10,17 +10,15 @@ from hw_sim.rig import make_rig
 from hw_sim.scenes import figure
 from reconstruct.pipeline import ReconstructionConfig, postprocess, reconstruct_sequence
 from reconstruct.types import Trajectories
-from tests.reconstruct.simdata import clean_point_errors, score_clouds, score_identity
+from tests.reconstruct.simdata import (MAX_SPURIOUS, MIN_FOUND, NOISE_PX, RMS_3D_M,
+                                       clean_point_errors, score_clouds, score_identity)
 
 RATE_HZ = 120.0
 SECONDS = 5.0
-NOISE_PX = 0.05
 SPURIOUS_PER_CAMERA_FRAME = 0.25       # 1.0% of the ~24.6 blobs per camera-frame
-MIN_FOUND = 0.995                      # acceptance (issue 4 point 2)
-MAX_SPURIOUS = 0.002
-# 0.05 px at ~5.5 m with f ~1200 px is 0.23 mm across each ray: points built from unmerged
-# blobs only; points using a merged blob (two markers' area-weighted centroid) are biased
-RMS_3D_M = 0.00035                 # ~0.2 mm per axis (test_pipeline); 0.26 mm measured
+# RMS_3D_M (0.05 px at ~5.5 m with f ~1200 px is 0.23 mm across each ray) holds for points
+# built from unmerged blobs only; points using a merged blob (two markers' area-weighted
+# centroid) are biased
 FIG_SEED = 21
 
 

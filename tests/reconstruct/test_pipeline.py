@@ -7,16 +7,12 @@ from hw_sim.observe import observe
 from hw_sim.rig import make_rig
 from reconstruct.pipeline import ReconstructionConfig, reconstruct_sequence
 from reconstruct.tracking import TrackingConfig
-from tests.reconstruct.simdata import (figure_scene, match_points, score_clouds,
+from tests.reconstruct.simdata import (MAX_SPURIOUS, MIN_FOUND, NOISE_PX, RMS_3D_M,
+                                       figure_scene, match_points, score_clouds,
                                        score_tracks)
 
 RATE_HZ = 120.0
-NOISE_PX = 0.05
 SPURIOUS_PER_CAMERA_FRAME = 0.35   # ~1% of the blobs
-MIN_FOUND = 0.995                  # acceptance (issue 4 point 2)
-MAX_SPURIOUS = 0.002
-RMS_3D_M = 0.00035                 # 0.05 px at ~5 m with f ~ 1200 px: ~0.2 mm per axis,
-                                   # 0.35 mm in 3D (0.27 mm measured)
 MAX_GAP = 5
 DIST = (-0.05, 0.01, 0.0, 0.0, 0.0)
 
