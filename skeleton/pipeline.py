@@ -467,14 +467,24 @@ def warm_up() -> None:
     _star_lm.warm_up()
 
 
-def _pair_costs(data, members, pairs, min_q, workers: int | None) -> list:
+def _pair_costs(data, members, pairs, min_q, workers: int | None, progress=None) -> list:
     """joint_cost's closed-form cost (``detail``) of every pair, in order, in ``workers``
     forked processes (None: the CPUs this process may run on) when there are at least
     PARALLEL_PAIRS pairs and the platform can fork; each pair's fit is independent of the
     others, so the results are the serial loop's up to the last digits, which vary with
     memory layout alone (the serial loop's cost of one pair moved by 1e-10 relative when
     another module was imported first). Falls back to the serial loop when a pool cannot be
-    started."""
+    started. ``progress(msg)`` hears of every quarter of the pairs done."""
+    step = max(1, -(-len(pairs) // 4))
+
+    def counted(costs):
+        out = []
+        for k, c in enumerate(costs, 1):
+            out.append(c)
+            if progress is not None and (k % step == 0 or k == len(pairs)):
+                progress(f"joint costs: {k}/{len(pairs)} segment pairs")
+        return out
+
     if workers is None:
         workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
             os.cpu_count() or 1)
@@ -486,11 +496,11 @@ def _pair_costs(data, members, pairs, min_q, workers: int | None) -> list:
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"),
                                      initializer=_init_worker,
                                      initargs=(data, members, min_q)) as ex:
-                return list(ex.map(_one_pair_cost, pairs,
-                                   chunksize=max(1, len(pairs) // (4 * workers))))
+                return counted(ex.map(_one_pair_cost, pairs,
+                                      chunksize=max(1, len(pairs) // (4 * workers))))
         except (OSError, BrokenProcessPool):
             pass
-    return [_pair_cost(data, members, min_q, ij) for ij in pairs]
+    return counted(_pair_cost(data, members, min_q, ij) for ij in pairs)
 
 
 def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, rng=None,
@@ -534,7 +544,8 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     hinge = np.zeros((S, S), bool)
     radii = {}      # 2+2 pairs: the fit's marker-joint distances (a start for the final fit)
     pairs = list(zip(*np.triu_indices(S, 1)))
-    for (i, j), pc in zip(pairs, _pair_costs(smooth, members, pairs, min_q, workers)):
+    for (i, j), pc in zip(pairs, _pair_costs(smooth, members, pairs, min_q, workers,
+                                             progress=progress)):
         cost[i, j] = cost[j, i] = pc.cost
         hinge[i, j] = hinge[j, i] = pc.hinge
         radii[i, j] = pc.radii

@@ -29,6 +29,7 @@ def test_cli_writes_bvh_and_report(tmp_path, capsys, figure, suffix):
     out = capsys.readouterr()
     assert code == 0
     assert "[skeleton] segments: 5" in out.err and "fit back" in out.err
+    assert "joint costs: 10/10 segment pairs" in out.err        # progress within the step
     assert "5 segments, " in out.out and "Average deviation" in out.out
     rig = read_skeleton_json(rep)
     assert rig.n_segments == 5 and rig.marker_names == fig.marker_names
