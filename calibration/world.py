@@ -125,6 +125,10 @@ def match_reference(points, reference, *, ambiguity_ratio: float = 3.0):
         raise ValueError(f"found {len(P)} static markers, the reference has {len(Q)}")
     if len(P) > 9:
         raise ValueError(f"found {len(P)} static markers: too many to match (remove clutter)")
+    sv = np.linalg.svd(Q - Q.mean(0), compute_uv=False)
+    if sv[1] < 1e-9 * max(sv[0], 1e-300):
+        raise ValueError("the reference points are collinear: they fix no rotation about "
+                         "their line (give three or more points not on one line)")
     fits = []
     for perm in permutations(range(len(P)), len(Q)):
         idx = np.array(perm)

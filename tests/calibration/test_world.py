@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from calibration.camera import rotation_from_rodrigues
-from calibration.world import align_to_reference, floor_from_points, kabsch, transform_rig
+from calibration.world import (align_to_reference, floor_from_points, kabsch, match_reference,
+                               transform_rig)
 from hw_sim.rig import make_rig
 
 EXACT_M = 1e-12
@@ -36,6 +37,10 @@ def test_floor_fit_and_errors():
     assert all(c.center[2] > 0 for c in transform_rig(moved, R, t))
     with pytest.raises(ValueError, match="collinear"):
         kabsch(L_FRAME[:3], L_FRAME[:3])
+    # a collinear reference is named as the reference, not blamed on the measured points
+    line = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.3, 0, 0]])
+    with pytest.raises(ValueError, match="the reference points are collinear"):
+        match_reference(g.uniform(-1, 1, (4, 3)), line)
 
 
 # --- from observed markers: hw_sim rig in the camera-0 gauge (as wand calibration leaves it) --
