@@ -7,7 +7,6 @@ happens (camera lost: goes on; sync box fault or full disk: stops, re-raises).
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence

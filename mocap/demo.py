@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 from calibration.rig_io import save_rig
 from calibration.wand import calibrate_wand
 from calibration.static_markers import static_points
-from calibration.world import align_world, l_frame_reference
+from calibration.world import align_world
 from capture.detections import Detections2D
 from hw_sim.observe import observe
 from hw_sim.render import render_scene

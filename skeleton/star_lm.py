@@ -266,7 +266,6 @@ def star_lm(X, seg, R, t, y, js, z, j0, pull_mm, max_iter, tol, stop_var):
         for g in range(n_g):
             diag_sum += V[g, g]
         scale = diag_sum / (F * n_fr + n_g)
-        status = 0
         while True:
             # damped normal equations by the Schur complement on the global parameters:
             # (U + D) df + W dg = -ef, W^T df + (V + D) dg = -eg

@@ -59,7 +59,6 @@ def tree_from_edges(n_segments: int, edges) -> Topology:
 
 
 def _rooted(adj: np.ndarray) -> Topology:
-    S = adj.shape[0]
     hops = shortest_path(adj.astype(float), unweighted=True, directed=False)
     ecc = hops.max(1)
     root = int(np.lexsort((-adj.sum(1), ecc))[0])

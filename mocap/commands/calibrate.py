@@ -12,7 +12,7 @@ into the world frame (right-handed, z up, floor z = 0) from static markers seen 
 """
 from __future__ import annotations
 
-import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -36,9 +36,13 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _check_positive(value, flag: str, unit: str) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{flag} {value}: expected a finite value > 0 ({unit})")
+
+
 def _wand_mm(text: str) -> tuple[float, ...]:
     """--wand-mm: 2 or 3 finite, distinct marker positions along the wand (mm)."""
-    import math
     try:
         v = tuple(float(x) for x in text.split(","))
     except ValueError:
@@ -50,8 +54,6 @@ def _wand_mm(text: str) -> tuple[float, ...]:
 
 
 def _wand(args) -> int:
-    import math
-
     from calibration.camera import Camera
     from calibration.rig_io import load_rig, save_rig
     from calibration.wand import calibrate_wand
@@ -61,8 +63,7 @@ def _wand(args) -> int:
     _toml_output({"the input": args.input, "--intrinsics": args.intrinsics}, out,
                  {"its report": out.with_suffix(".report.txt"),
                   "its report figure": out.with_suffix(".report.png")})
-    if args.focal_px is not None and not (math.isfinite(args.focal_px) and args.focal_px > 0):
-        raise ValueError(f"--focal-px {args.focal_px}: expected a focal length > 0 (pixels)")
+    _check_positive(args.focal_px, "--focal-px", "pixels")
     wand_mm = _wand_mm(args.wand_mm)
     rig0 = None
     if args.intrinsics:
@@ -93,8 +94,6 @@ def _wand(args) -> int:
 
 
 def _parse_board(spec: str) -> dict:
-    import math
-
     parts = spec.split(":")
     kind = parts[0].lower()
 
@@ -179,11 +178,9 @@ def _world(args) -> int:
     from calibration.static_markers import static_points
     from calibration.world import align_floor, align_world
     from reconstruct.app import load_detections
-    import math
 
     _toml_output({"the input": args.input, "the calibration": args.calibration}, args.output)
-    if not (math.isfinite(args.gate_px) and args.gate_px > 0):
-        raise ValueError(f"--gate-px {args.gate_px}: expected a distance > 0 (pixels)")
+    _check_positive(args.gate_px, "--gate-px", "pixels")
     rig = load_rig(args.calibration)
     modes = sum(bool(m) for m in (args.l_frame, args.reference_mm, args.floor))
     if modes != 1:
