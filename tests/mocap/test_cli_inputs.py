@@ -50,6 +50,28 @@ def test_outputs_never_overwrite_inputs(tmp_path, wand_csv, capsys):
     assert (csv.read_bytes(), toml.read_bytes()) == before
 
 
+def test_unwritable_outputs_are_refused_before_the_work(tmp_path, wand_csv, capsys):
+    """An output below a file, or in a folder that takes no file (procfs refuses new files
+    even to root, for whom permission bits do not count), is refused before any work, and
+    the check leaves nothing behind in a folder it could write."""
+    rig, csv, toml = wand_csv
+    cases = [
+        (["reconstruct", str(csv), "--calibration", str(toml), "-o", str(csv / "m.c3d")],
+         f"{csv} is a file, not a folder"),
+        (["reconstruct", str(csv), "--calibration", str(toml), "-o", "/proc/m.c3d"],
+         "cannot write in /proc"),
+        (["calibrate", "world", str(toml), str(csv), "--floor", "-o", "/proc/rig.toml"],
+         "cannot write in /proc"),
+    ]
+    for argv, msg in cases:
+        assert main(argv) == 2, argv
+        err = _err(capsys)
+        assert msg in err and "frames" not in err, (argv, err)
+    out = tmp_path / "new" / "deeper" / "m.c3d"
+    assert main(["reconstruct", str(csv), "--calibration", str(toml), "-o", str(out)]) == 0
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["deeper", "m.c3d", "new"]
+
+
 def test_impossible_numbers_are_named(tmp_path, wand_csv, capsys):
     rig, csv, toml = wand_csv
     out = str(tmp_path / "c.toml")
