@@ -291,7 +291,8 @@ class _Completed:
         return True
 
 
-def _raise_split_siblings(data, members, cost, floor, frameless, upper, tol_m, log=None):
+def _raise_split_siblings(data, members, cost, floor, frameless, upper, tol_m, log=None,
+                          anchored=None):
     """Cheap pairs (below ``upper``) of two frameless segments a, b with a framed segment p
     that fits a joint within the noise with each (cost <= ANCHOR x ``floor``), at centres
     that lie apart in p (median distance > ``tol_m``; to a hinge's axis line): their cost is
@@ -303,8 +304,14 @@ def _raise_split_siblings(data, members, cost, floor, frameless, upper, tol_m, l
     siblings 41 mm apart under 3-marker segment 1 at 1.00x the floor, their true joints on
     1 at 0.97x and 1.01x; the tree took the false one). This is the anchor test
     (``_Completed``) where no anchor exists: p's frame carries both joints too noisily
-    (gains 3.5 and 2.7). ``log``, when given, gets (a, b, p, median distance m, cost /
-    floor) per raised pair. Returns the raised pairs (frozensets)."""
+    (gains 3.5 and 2.7). ``anchored(a, b)``, when given: whether one of the pair is the
+    other's anchor (``_Completed.anchored``); such a pair is not raised. Its joint already
+    fitted within the noise in the anchor's completed frame, and then the cheap pair on p
+    is the likelier false one of the triangle (seed 119044, 1 mm: 2-marker hinge child 1 of
+    2-marker root 0, anchored on it; the false sibling pair 1-2 at 1.31x the floor, 2-0 at
+    1.03x, their centres 103 mm apart on 3-marker segment 2; the true edge 0-1, at 0.84x,
+    was raised and the tree took 1-2). ``log``, when given, gets (a, b, p, median distance
+    m, cost / floor) per raised pair. Returns the raised pairs (frozensets)."""
     fits: dict = {}
 
     def fit(p, a):
@@ -315,6 +322,8 @@ def _raise_split_siblings(data, members, cost, floor, frameless, upper, tol_m, l
     out: set = set()
     for a, b in zip(*np.triu_indices(len(members), 1)):
         if not (frameless[a] and frameless[b] and cost[a, b] < upper):
+            continue
+        if anchored is not None and anchored(a, b):
             continue
         for p in np.flatnonzero(~np.asarray(frameless, bool)):
             if max(cost[p, a], cost[p, b]) > ANCHOR * floor:
@@ -591,7 +600,7 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
             completed.raise_false(cost, i, j, floor)
     # pairs of frameless segments that a framed segment fits apart (no anchor needed)
     _raise_split_siblings(smooth, members, cost, floor, frameless, upper,
-                          JUNCTION_K * max(noise_m, CLEAN_NOISE_M))
+                          JUNCTION_K * max(noise_m, CLEAN_NOISE_M), anchored=completed.anchored)
     raised = completed.raised
     say(f"joint costs: {S * (S - 1) // 2} pairs ({raised} raised by completed frames)")
     # A pair whose relative motion is a rotation about one axis, fitting within the noise,

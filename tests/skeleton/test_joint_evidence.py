@@ -239,6 +239,29 @@ def test_false_siblings_apart_on_a_framed_parent_are_raised():
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
 
 
+def test_an_anchored_pair_is_not_raised_as_split_siblings():
+    """Seed 119044 (1 mm noise): 2-marker hinge child 1 of 2-marker root 0, and 3-marker
+    hinge child 2 of 0, their joints 52.6 mm apart. 1 is anchored on 0 (its joint fits
+    within the noise in 0's completed frame). 2 fits a joint with 0 and a false one with 1,
+    both below ANCHOR x the floor, at centres ~100 mm apart: the split rule alone blames the
+    frameless pair 0-1, the true edge, and the tree then took the false 1-2. An anchored
+    pair is left to the tree."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(119044)
+    assert fig.parents[1] == fig.parents[2] == 0 and (m[0].size, m[1].size) == (2, 2)
+    before, cost, floor, completed = _completed_costs(smooth, m, truth, (1, 2), min_q)
+    assert completed.anchors[1][0] == 0
+    frameless = np.array([frame_quality(smooth, s) <= min_q for s in m])
+    noise = np.sqrt(min_q) / POOR_FRAME
+    args = (smooth, m, cost.copy(), floor, frameless, FALSIFY_BELOW * floor,
+            JUNCTION_K * noise)
+    assert frozenset((0, 1)) in _raise_split_siblings(*args)     # the rule without anchors
+    kept = cost.copy()
+    raised = _raise_split_siblings(smooth, m, kept, floor, frameless, FALSIFY_BELOW * floor,
+                                   JUNCTION_K * noise, anchored=completed.anchored)
+    assert frozenset((0, 1)) not in raised and kept[0, 1] == cost[0, 1] < cost[1, 2]
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
 def test_no_anchor_through_a_costlier_neighbour():
     """Seed 3022: 2-marker segments 1 and 3 are siblings under 3-marker root 0, their joints
     31 mm apart. The root's frame carries either joint centre too noisily (gain > 3), so
