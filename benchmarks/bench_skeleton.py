@@ -29,8 +29,9 @@ the star margin (skeleton.junctions.STAR_MARGIN) chosen on their true sibling tr
 compiled fits' code (the same trees), 103000-104000 on it with skeleton.relink.PLAUSIBLE 3
 and 5 (the same trees); at stop 24, 105000-116000 first run on its compiled Kabsch and
 sphere residuals (0595076), and the re-link's check of an unconverged current star then chosen
-on the failure 109048; 117000-119000 first run at stop 27 on the same solver; 120000+
-untouched)
+on the failure 109048; 117000-119000 first run at stop 27 on the same solver, whose failure
+119044 then showed the anchored-pair exception of the split-siblings rule (760d886); 120000
+and 121000 first run at stop 28 on 760d886 (49 and 50 of 50 at 1 mm); 122000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
