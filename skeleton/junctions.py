@@ -105,6 +105,14 @@ def _root(parent, k):
     return k
 
 
+def _nan_mean(stack: np.ndarray) -> np.ndarray:
+    """Mean over axis 0 ignoring NaN; NaN where nothing is seen (np.nanmean without its
+    'Mean of empty slice' warning, which the skeleton command shows to its user: frames where
+    no joint of a group is seen are normal, e.g. ktk_basket_sprint)."""
+    n = (~np.isnan(stack)).sum(0)
+    return np.divide(np.nansum(stack, 0), n, out=np.full(stack.shape[1:], np.nan), where=n > 0)
+
+
 def joint_gap(ca, aa, cb, ab) -> np.ndarray:
     """(T,) distance between two joints: centres (T, 3); a hinge's (axis (T, 3), else None)
     centre is anywhere on its axis, so the distance is taken to that line."""
@@ -290,7 +298,7 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
     def relink(edges, grp, tol, depth):
         inner = [e for e in edges if e <= grp]
         ball = [e for e in inner if axes.get(e) is None] or inner   # a hinge's centre is
-        c = np.nanmean(np.stack([centres[e] for e in ball]), axis=0)   # arbitrary on its axis
+        c = _nan_mean(np.stack([centres[e] for e in ball]))          # arbitrary on its axis
         apart = [np.linalg.norm(centres[e] - centres[f], axis=1)
                  for i, e in enumerate(ball) for f in ball[i + 1:]]
         if floor_m > 0 and any(

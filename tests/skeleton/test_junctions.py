@@ -3,13 +3,14 @@ vs hw_sim truth (fast); and the equivalence metric of tests/skeleton/_figures.py
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from hw_sim.articulated import animate, random_tree
-from skeleton.junctions import junction_groups, resolve_junctions
+from skeleton.junctions import _nan_mean, junction_groups, resolve_junctions
 from skeleton.topology import tree_from_edges
 from tests.skeleton._figures import (bench_figure, coincident_joint_groups, exact_topology,
                                      segment_map, solver_joint_errors, topology_equivalent)
@@ -360,3 +361,18 @@ def test_hub_chosen_by_the_star_likelihood_where_decisive():
     noisy = mo.markers + np.random.default_rng(49).normal(0, 1e-3, mo.markers.shape)
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
     assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, star_margin=np.inf))
+
+
+def test_junction_point_mean_skips_unseen_frames_without_a_warning():
+    """The junction point is the mean of its joints' centres where any is seen, NaN where
+    none is (np.nanmean's 'Mean of empty slice' warning reached the skeleton command's
+    user as a progress line on ktk_basket_sprint)."""
+    c = np.random.default_rng(0).normal(size=(3, 50, 3))
+    c[:, :5] = np.nan                   # no joint seen
+    c[0, 10:20] = np.nan                # one joint hidden
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = _nan_mean(c)
+    assert np.isnan(got[:5]).all() and not np.isnan(got[5:]).any()
+    np.testing.assert_allclose(got[10:20], c[1:, 10:20].mean(0), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(got[20:], c[:, 20:].mean(0), rtol=0, atol=1e-15)
