@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration.points import point_covariance
+from capture.atomic import atomic_file
 
 NOISE_LIMITED_RATIO = 1.2   # SD / floor below this: the SD is triangulation noise
 
@@ -124,8 +125,11 @@ class CalibrationReport:
             a.set_xticks([])
             a.set_yticks([])
         fig.tight_layout()
-        fig.savefig(path, dpi=80)
-        plt.close(fig)
+        try:
+            with atomic_file(path, "wb") as f:
+                fig.savefig(f, dpi=80, format="png")
+        finally:
+            plt.close(fig)
 
 
 def _padded(v, min_width=1e-3):

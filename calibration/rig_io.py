@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
+from capture.atomic import atomic_file
+
 from .camera import Camera, Rig, rodrigues_from_rotation, rotation_from_rodrigues
 
 __all__ = ["save_rig", "load_rig", "CalibrationFileError"]
@@ -56,10 +58,8 @@ def save_rig(rig: Rig, path, *, metadata: dict | None = None) -> Path:
             meta[str(k)] = v
     doc["metadata"] = meta
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_file(path, "wb") as f:
         tomli_w.dump(doc, f)
-    tmp.replace(path)
     return path
 
 

@@ -16,6 +16,8 @@ from typing import Sequence
 
 import numpy as np
 
+from .atomic import atomic_file
+
 __all__ = ["Detections2D", "read_detections_csv", "write_detections_csv"]
 
 
@@ -129,7 +131,7 @@ def write_detections_csv(det: Detections2D, path) -> Path:
     with camera names; rate and order in a leading comment."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
+    with atomic_file(path, "w", newline="") as f:
         f.write(f"# cameras={','.join(det.camera_names)}")
         if det.rate_hz:
             f.write(f" rate_hz={det.rate_hz:g}")

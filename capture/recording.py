@@ -46,6 +46,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .atomic import atomic_file
 from .detections import Detections2D, write_detections_csv
 from .errors import DiskFullError, RecordingError
 from .frame import Frame, TimestampSource
@@ -352,11 +353,8 @@ class Recorder:
             self.error = err
 
     def _write_metadata(self):
-        tmp = self.folder / "metadata.json.tmp"
-        tmp.write_text(json.dumps(self._meta, indent=2))
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, self.folder / "metadata.json")
+        with atomic_file(self.folder / "metadata.json") as f:
+            f.write(json.dumps(self._meta, indent=2))
 
     def _raise_if_failed(self):
         if self.error is not None:

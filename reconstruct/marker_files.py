@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from capture.atomic import atomic_file
+
 __all__ = ["MarkerData", "read_markers", "write_markers", "write_c3d", "read_c3d",
            "write_trc", "read_trc", "write_csv", "read_csv"]
 
@@ -110,11 +112,9 @@ def write_c3d(data: MarkerData, path) -> Path:
     _set_point_labels(w, list(data.labels))
     if data.first_frame != 1:
         w.set_start_frame(int(data.first_frame))
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "wb") as h, warnings.catch_warnings():
+    with atomic_file(path, "wb") as h, warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="No analog data found")  # markers only
         w.write(h)
-    tmp.replace(path)
     return path
 
 
@@ -258,9 +258,8 @@ def write_trc(data: MarkerData, path) -> Path:
             else:
                 vals.extend(repr(float(v)) for v in mm[t, m])
         out.append(f"{t + data.first_frame}\t{t / rate:.6f}\t" + "\t".join(vals) + "\n")
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text("".join(out))
-    tmp.replace(path)
+    with atomic_file(path) as f:
+        f.write("".join(out))
     return path
 
 
@@ -303,7 +302,7 @@ def write_csv(data: MarkerData, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     mm = data.positions * 1000.0
-    with open(path, "w", newline="") as f:
+    with atomic_file(path, "w", newline="") as f:
         f.write(f"# units=mm rate_hz={data.rate_hz:g}\n")
         w = csv.writer(f)
         w.writerow(["frame", "time_s"] + [f"{lab}_{a}" for lab in data.labels for a in "xyz"])

@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from capture.atomic import atomic_file
+
 from skeleton.fit import SkeletonFit
 from skeleton.rigid_skeleton import RigidSkeleton
 
@@ -115,5 +117,6 @@ def write_bvh(path, rigid: RigidSkeleton, fit: SkeletonFit, rate_hz: float | Non
     lines += ["MOTION", f"Frames: {T}", f"Frame Time: {1.0 / rate:.9g}"]
     lines += [" ".join(fmt(float(x)) for x in row) for row in data]
     path = Path(path)
-    path.write_text("\n".join(lines) + "\n")
+    with atomic_file(path) as f:
+        f.write("\n".join(lines) + "\n")
     return path

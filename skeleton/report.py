@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from capture.atomic import atomic_file
+
 from skeleton.fit import SkeletonFit
 from skeleton.rigid_skeleton import RigidSkeleton
 
@@ -111,7 +113,9 @@ def skeleton_from_dict(d: dict) -> RigidSkeleton:
 
 def write_skeleton_json(path, rigid: RigidSkeleton, extra: dict | None = None) -> Path:
     path = Path(path)
-    path.write_text(json.dumps(skeleton_to_dict(rigid, extra), indent=1) + "\n")
+    text = json.dumps(skeleton_to_dict(rigid, extra), indent=1) + "\n"
+    with atomic_file(path) as f:
+        f.write(text)
     return path
 
 

@@ -57,6 +57,7 @@ def _wand(args) -> int:
     from calibration.camera import Camera
     from calibration.rig_io import load_rig, save_rig
     from calibration.wand import calibrate_wand
+    from capture.atomic import atomic_file
     from reconstruct.app import load_detections
 
     out = Path(args.output)
@@ -86,7 +87,8 @@ def _wand(args) -> int:
         return 1
     save_rig(res.rig, out)
     text = res.report.summary()
-    out.with_suffix(".report.txt").write_text(text + "\n")
+    with atomic_file(out.with_suffix(".report.txt")) as f:
+        f.write(text + "\n")
     res.report.save_figure(out.with_suffix(".report.png"), res.residual_px)
     print(text)
     print(f"wrote {out}")
