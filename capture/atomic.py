@@ -1,6 +1,7 @@
 """Output files written whole or not at all.
 
-``atomic_file(path, mode="w", **open_kw)`` is a context manager yielding an open file: it
+``atomic_file(path, mode="w", **open_kw)`` is a context manager yielding an open file
+(``write_text_atomic(path, text)`` for a text built in memory): it
 writes ``path`` + ".tmp" beside the target, flushes it to disk (fsync) and renames it over
 the target only when the block ends without an error (``os.replace`` is atomic on POSIX).
 On any error the temporary file is removed and the target is left as it was: a crash, a
@@ -15,7 +16,7 @@ import os
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_file"]
+__all__ = ["atomic_file", "write_text_atomic"]
 
 
 @contextmanager
@@ -33,3 +34,11 @@ def atomic_file(path, mode: str = "w", **open_kw):
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def write_text_atomic(path, text: str) -> Path:
+    """``text`` written to ``path`` whole or not at all (``atomic_file``); returns the path."""
+    path = Path(path)
+    with atomic_file(path) as f:
+        f.write(text)
+    return path

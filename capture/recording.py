@@ -46,7 +46,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .atomic import atomic_file
+from .atomic import write_text_atomic
 from .detections import Detections2D, write_detections_csv
 from .errors import DiskFullError, RecordingError
 from .frame import Frame, TimestampSource
@@ -353,8 +353,7 @@ class Recorder:
             self.error = err
 
     def _write_metadata(self):
-        with atomic_file(self.folder / "metadata.json") as f:
-            f.write(json.dumps(self._meta, indent=2))
+        write_text_atomic(self.folder / "metadata.json", json.dumps(self._meta, indent=2))
 
     def _raise_if_failed(self):
         if self.error is not None:

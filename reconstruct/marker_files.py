@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.atomic import atomic_file
+from capture.atomic import atomic_file, write_text_atomic
 
 __all__ = ["MarkerData", "read_markers", "write_markers", "write_c3d", "read_c3d",
            "write_trc", "read_trc", "write_csv", "read_csv"]
@@ -258,9 +258,7 @@ def write_trc(data: MarkerData, path) -> Path:
             else:
                 vals.extend(repr(float(v)) for v in mm[t, m])
         out.append(f"{t + data.first_frame}\t{t / rate:.6f}\t" + "\t".join(vals) + "\n")
-    with atomic_file(path) as f:
-        f.write("".join(out))
-    return path
+    return write_text_atomic(path, "".join(out))
 
 
 def read_trc(path) -> MarkerData:

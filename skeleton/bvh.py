@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from capture.atomic import atomic_file
+from capture.atomic import write_text_atomic
 
 from skeleton.fit import SkeletonFit
 from skeleton.rigid_skeleton import RigidSkeleton
@@ -116,7 +116,4 @@ def write_bvh(path, rigid: RigidSkeleton, fit: SkeletonFit, rate_hz: float | Non
     data = np.concatenate([k * root_t, eul], 1)
     lines += ["MOTION", f"Frames: {T}", f"Frame Time: {1.0 / rate:.9g}"]
     lines += [" ".join(fmt(float(x)) for x in row) for row in data]
-    path = Path(path)
-    with atomic_file(path) as f:
-        f.write("\n".join(lines) + "\n")
-    return path
+    return write_text_atomic(path, "\n".join(lines) + "\n")

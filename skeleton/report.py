@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.atomic import atomic_file
+from capture.atomic import write_text_atomic
 
 from skeleton.fit import SkeletonFit
 from skeleton.rigid_skeleton import RigidSkeleton
@@ -112,11 +112,7 @@ def skeleton_from_dict(d: dict) -> RigidSkeleton:
 
 
 def write_skeleton_json(path, rigid: RigidSkeleton, extra: dict | None = None) -> Path:
-    path = Path(path)
-    text = json.dumps(skeleton_to_dict(rigid, extra), indent=1) + "\n"
-    with atomic_file(path) as f:
-        f.write(text)
-    return path
+    return write_text_atomic(path, json.dumps(skeleton_to_dict(rigid, extra), indent=1) + "\n")
 
 
 def read_skeleton_json(path) -> RigidSkeleton:

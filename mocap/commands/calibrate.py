@@ -57,7 +57,7 @@ def _wand(args) -> int:
     from calibration.camera import Camera
     from calibration.rig_io import load_rig, save_rig
     from calibration.wand import calibrate_wand
-    from capture.atomic import atomic_file
+    from capture.atomic import write_text_atomic
     from reconstruct.app import load_detections
 
     out = Path(args.output)
@@ -87,8 +87,7 @@ def _wand(args) -> int:
         return 1
     save_rig(res.rig, out)
     text = res.report.summary()
-    with atomic_file(out.with_suffix(".report.txt")) as f:
-        f.write(text + "\n")
+    write_text_atomic(out.with_suffix(".report.txt"), text + "\n")
     res.report.save_figure(out.with_suffix(".report.png"), res.residual_px)
     print(text)
     print(f"wrote {out}")
