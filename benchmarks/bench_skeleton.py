@@ -31,7 +31,10 @@ and 5 (the same trees); at stop 24, 105000-116000 first run on its compiled Kabs
 sphere residuals (0595076), and the re-link's check of an unconverged current star then chosen
 on the failure 109048; 117000-119000 first run at stop 27 on the same solver, whose failure
 119044 then showed the anchored-pair exception of the split-siblings rule (760d886); 120000
-and 121000 first run at stop 28 on 760d886 (49 and 50 of 50 at 1 mm); 122000+ untouched)
+and 121000 first run at stop 28 on 760d886 (49 and 50 of 50 at 1 mm); 122000-125000 first
+run at stop 29 on 2ffebb4 (48, 50, 49, 50), whose failure 122025 then showed the false-anchor
+veto of 78a2534; 126000-129000 first run with and without it (195/200 both); 130000+
+untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
