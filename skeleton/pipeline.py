@@ -247,9 +247,7 @@ class _Completed:
     segment's completed frame, a false one - free to turn about a 2-marker segment's line -
     no longer fits. A pair whose completed fit costs more than FALSIFY x the floor takes
     that cost (``raise_false``; costs are only ever raised: the anchor point's own noise
-    adds to a true pair's cost, so completed costs are not compared otherwise) - unless
-    both segments are completed and one frame fits the pair within ANCHOR x the floor:
-    the other frame's anchor is then the likelier false one."""
+    adds to a true pair's cost, so completed costs are not compared otherwise)."""
 
     def __init__(self, data, members, cost, floor, frameless, min_quality):
         self.anchors, self.ext, self.col = _anchor_points(data, members, cost, floor,
@@ -279,21 +277,11 @@ class _Completed:
             # false siblings 21 mm apart cost 1.98x and 4.57x the floor so, 1.75x with both
             # frames completed at once)
             mi, mj = self.members[i], self.members[j]
-            both = [c for c in (
+            self.costs[i, j] = max(
                 joint_cost(self.ext, np.append(mi, self.col[i]), mj,
-                           min_quality=self.min_quality) if i in self.anchors else None,
+                           min_quality=self.min_quality) if i in self.anchors else 0.0,
                 joint_cost(self.ext, mi, np.append(mj, self.col[j]),
-                           min_quality=self.min_quality) if j in self.anchors else None)
-                if c is not None]
-            # ... unless the anchor is the false one: a frame completed by a sibling's
-            # joint (two siblings can fit one within the noise) rejects the true pair,
-            # while the other frame, completed by a true joint, fits it as well as an
-            # anchor itself must (ANCHOR x the floor). Seed 122025, 1 mm: 2-marker child 8
-            # of 2-marker segment 2, anchored on its sibling 4 (joints 43.8 mm apart):
-            # the true pair cost 2.55x in 8's frame and 1.33x in 2's; raised, the tree
-            # took 4-8.
-            self.costs[i, j] = (min(both) if len(both) == 2 and min(both) <= ANCHOR * floor
-                                else max(both, default=0.0))
+                           min_quality=self.min_quality) if j in self.anchors else 0.0)
         c2 = self.costs[i, j]
         if not c2 > FALSIFY * max(floor, CLEAN_NOISE_M):
             return False
