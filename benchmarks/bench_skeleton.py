@@ -32,9 +32,9 @@ sphere residuals (0595076), and the re-link's check of an unconverged current st
 on the failure 109048; 117000-119000 first run at stop 27 on the same solver, whose failure
 119044 then showed the anchored-pair exception of the split-siblings rule (760d886); 120000
 and 121000 first run at stop 28 on 760d886 (49 and 50 of 50 at 1 mm); 122000-125000 first
-run at stop 29 on 2ffebb4 (48, 50, 49, 50), whose failure 122025 then showed the false-anchor
-veto of 78a2534; 126000-129000 first run with and without it (195/200 both); 130000+
-untouched)
+run at stop 29 on 2ffebb4 (48, 50, 49, 50); 126000-129000 first run with and without
+78a2534's false-anchor veto, chosen on 122025 (195/200 both, identical trees; reverted for
+the real tennis serve, see tests/skeleton/test_real_data.py); 130000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
