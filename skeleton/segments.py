@@ -26,6 +26,20 @@ normally on the same segment). Nothing assumes a noise level in millimetres.
 4. Each marker moves to the cluster with the smallest mean squared distance SD to its members
    (fixes markers near a joint that the affinity attached to the neighbouring segment).
 5. A marker left alone joins the cluster it is most rigid with (automatic K only).
+6. Rigidity decides the count (automatic K only, stop 30). A segment is a rigid body, so when
+   steps 3-5 still leave a cluster that is not rigid (a marker folded back in step 5), the
+   count rises from the eigengap's: K + 1, K + 2, ... up to M / 2 are clustered afresh
+   (spectral, rigid merge, reassignment; no split) and the first whose clusters all hold
+   >= 2 markers and are rigid is taken; where none is, the one with the smallest largest
+   within-cluster SD, if smaller than step 5's. Markers near a joint look rigid to both
+   neighbours, and the one-marker-at-a-time split of step 3 cuts such a cluster at the wrong
+   place: on CMU's 85_12 the eigengap (9) and steps 3-5 gave {pelvis + RTHI} (7.9x the
+   noise level) and {RKNE RSHN RANK}; 13 clusters give {RTHI RKNE}, {RSHN RANK}, all within
+   2.9x. On 85_02 (eigengap 11): 15 segments, no leg cluster above 3.5x (the forearm and
+   hand clusters at 4.5x and 4.6x). Both tennis copies: 14, the same partition with and
+   without gaps. Simulated figures whose steps 3-5 leave every cluster rigid do not change:
+   the segmentation screens below (``tests.skeleton.test_segments``) gave the same counts
+   and wrong seeds before and after.
 
 Measured (figures as benchmarks/bench_skeleton.py: random_tree(5..20 segments, 2-4 markers),
 600 frames; right = same K and same partition as the truth; command:
@@ -225,6 +239,38 @@ def _fold_singletons(sd: np.ndarray, labels: np.ndarray) -> np.ndarray:
         labels[i] = min(cand, key=lambda c: float(np.mean(sd[i, labels == c] ** 2)))
 
 
+def _spectral(A: np.ndarray, K: int, seed: int) -> np.ndarray:
+    """Spectral clustering of affinity ``A`` into ``K`` clusters (one cluster for K = 1)."""
+    if K == 1:
+        return np.zeros(A.shape[0], np.int64)
+    with warnings.catch_warnings():   # well-separated segments: disconnected graph
+        warnings.filterwarnings("ignore", message="Graph is not fully connected")
+        labels = SpectralClustering(n_clusters=K, affinity="precomputed", random_state=seed,
+                                    assign_labels="cluster_qr").fit(A).labels_
+    return np.asarray(labels, np.int64)
+
+
+def _worst_sd(sd: np.ndarray, labels: np.ndarray) -> float:
+    """The largest distance SD between two markers of one cluster."""
+    return max(float(sd[np.ix_(labels == c, labels == c)].max()) for c in np.unique(labels))
+
+
+def _automatic(sd: np.ndarray, A: np.ndarray, k0: int, seed: int, noise: float) -> np.ndarray:
+    """Labels for the automatic segment count (see the module docstring, steps 3-6)."""
+    tau = max(RIGID_FACTOR * noise, SCALE_FLOOR_M)
+    merge_tau = max(MERGE_FACTOR * noise, SCALE_FLOOR_M)
+    labels = _split_nonrigid(sd, _spectral(A, k0, seed), tau)
+    labels = _fold_singletons(sd, _reassign(sd, _merge_rigid(sd, labels, merge_tau)))
+    best, score = labels, max(_worst_sd(sd, labels), tau)
+    for K in range(k0 + 1, sd.shape[0] // 2 + 1):
+        if score <= tau:
+            break
+        cand = _reassign(sd, _merge_rigid(sd, _spectral(A, K, seed), merge_tau))
+        if np.bincount(cand).min() >= 2 and max(_worst_sd(sd, cand), tau) < score:
+            best, score = cand, max(_worst_sd(sd, cand), tau)
+    return best
+
+
 def segment_markers(traj: np.ndarray, n_segments: int | None = None, rng=None) -> Segmentation:
     sd = distance_sd(traj)
     M = sd.shape[0]
@@ -245,20 +291,10 @@ def segment_markers(traj: np.ndarray, n_segments: int | None = None, rng=None) -
         raise ValueError(f"n_segments={n_segments!r}, expected 1..{M}")
     seed = rng if isinstance(rng, (int, np.integer)) else (
         int(np.random.default_rng(rng).integers(2**31)))
-    if K == 1:
-        labels = np.zeros(M, np.int64)
+    if n_segments is None:
+        labels = _automatic(sd, A, K, seed, noise)
     else:
-        with warnings.catch_warnings():   # well-separated segments: disconnected graph
-            warnings.filterwarnings("ignore", message="Graph is not fully connected")
-            labels = SpectralClustering(n_clusters=K, affinity="precomputed", random_state=seed,
-                                        assign_labels="cluster_qr").fit(A).labels_
-    labels = np.asarray(labels, np.int64)
-    if n_segments is None:
-        labels = _split_nonrigid(sd, labels, max(RIGID_FACTOR * noise, SCALE_FLOOR_M))
-        labels = _merge_rigid(sd, labels, max(MERGE_FACTOR * noise, SCALE_FLOOR_M))
-    labels = _reassign(sd, labels)
-    if n_segments is None:
-        labels = _fold_singletons(sd, labels)
+        labels = _reassign(sd, _spectral(A, K, seed))
     # relabel in order of first marker (drops any emptied label)
     _, first = np.unique(labels, return_index=True)
     remap = np.full(labels.max() + 1, -1, np.int64)

@@ -52,3 +52,50 @@ def test_tennis_foot_hangs_from_its_shank(shared_data):
         return res.parents[a] == b or res.parents[b] == a
 
     assert linked(foot, shank) and not linked(foot, thigh)
+
+
+def _segments_by_name(shared_data, stem):
+    """Marker names per segment as ``mocap skeleton`` segments the recording: fragments merged
+    into markers, 6 Hz low-passed (the data is noisy), automatic segment count."""
+    from reconstruct.marker_files import read_markers
+    from skeleton.markersets import merge_fragments
+    from skeleton.pipeline import lowpass
+    from skeleton.segments import segment_markers
+
+    d = read_markers(shared_data / "c3d" / f"{stem}.c3d")
+    sets = merge_fragments(np.asarray(d.positions, np.float64), min_frames=10)
+    names = [str(d.labels[g[0]]).split(":")[-1] for g in sets.groups]
+    seg = segment_markers(lowpass(sets.positions, d.rate_hz, trim=True), None, rng=0)
+    return [{names[i] for i in np.flatnonzero(seg.labels == s)} for s in range(seg.n_segments)]
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+@pytest.mark.parametrize("stem", ["cmu_85_02", "cmu_85_12"])
+def test_cmu_legs_segment_anatomically(shared_data, stem):
+    """CMU's 41-marker set: the pelvis (LFWT RFWT LBWT RBWT) is one segment, each thigh is
+    its THI and KNE markers, and no segment mixes the pelvis, thigh, shank (SHN ANK) and
+    foot (MT5 TOE) of a leg. The eigengap's count (11 and 9) left clusters that were not
+    rigid; split and folded back one marker at a time, they came out as {pelvis + RTHI},
+    {RKNE RSHN RANK} (85_12) and {RTHI RKNE RSHN}, {LSHN LANK LHEE LMT5 LTOE} (85_02), and
+    the trees hung a foot from the other thigh. The automatic count now rises until every
+    segment is rigid (or as rigid as any count makes it): 13 and 15 segments."""
+    segs = _segments_by_name(shared_data, stem)
+    assert {"LFWT", "RFWT", "LBWT", "RBWT"} in segs
+    for side in "LR":
+        assert {f"{side}THI", f"{side}KNE"} in segs
+        parts = [{"LFWT", "RFWT", "LBWT", "RBWT"}, {f"{side}THI", f"{side}KNE"},
+                 {f"{side}SHN", f"{side}ANK"}, {f"{side}MT5", f"{side}TOE"}]
+        for s in segs:
+            assert sum(bool(s & p) for p in parts) <= 1, (side, s)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_tennis_segments_do_not_change_with_gaps(shared_data):
+    """kineticstoolkit's tennis serve and its copy with NaN gaps segment alike: the left upper
+    arm (LELB LUPA) apart from the forearm and hand (LFIN LFRM LWRA LWRB). Before the
+    rigidity-driven count the two copies differed (eigengap 12 and 7) and LFRM sat on the
+    upper arm in a cluster 7.6x the noise level."""
+    a = _segments_by_name(shared_data, "ktk_tennis_serve_optitrack")
+    b = _segments_by_name(shared_data, "ktk_tennis_serve_with_gaps")
+    assert sorted(map(sorted, a)) == sorted(map(sorted, b))
+    assert {"LELB", "LUPA"} in a and {"LFIN", "LFRM", "LWRA", "LWRB"} in a
