@@ -336,7 +336,7 @@ def _smooth_signal(g: np.random.Generator, t_s: np.ndarray, n_sines: int = 3) ->
 
 
 def animate(figure: Figure, n_frames: int, rate_hz: float = 120.0, rom_deg: float = 60.0,
-            rng=None, root_path: str = "loop") -> Motion:
+            rng=None, root_path: str = "loop", soft_tissue_m: float = 0.0) -> Motion:
     """Smooth motion of ``figure`` over ``n_frames`` frames at ``rate_hz``.
 
     Every non-root joint's rotation (relative to its parent, about the rest pose) has a
@@ -345,9 +345,17 @@ def animate(figure: Figure, n_frames: int, rate_hz: float = 120.0, rom_deg: floa
     that span). The root walks a figure-eight of 1.2 m half-width centred at the origin,
     facing along its path (``root_path="loop"``) or turns on the spot (``"fixed"``); its
     height keeps the lowest body surface point on the floor z = 0 in every frame.
+
+    ``soft_tissue_m``: skin markers are not rigid on their bone; with it > 0 each marker
+    also slides in its segment's frame by a slow smooth displacement (per axis a sum of
+    sinusoids at 0.15-0.8 Hz spanning exactly +-soft_tissue_m), as soft-tissue artefacts do
+    on real recordings (the joints, the truth, do not move with it). Drawn after everything
+    else, so figures animated without it are the same with or without this option.
     """
     if root_path not in ROOT_PATHS:
         raise ValueError(f"root_path={root_path!r}, expected one of {ROOT_PATHS}")
+    if not soft_tissue_m >= 0:
+        raise ValueError(f"soft_tissue_m={soft_tissue_m!r}, expected >= 0 (m)")
     if not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
         raise ValueError(f"n_frames={n_frames!r}, expected an int >= 1")
     if not rate_hz > 0:
@@ -400,6 +408,11 @@ def animate(figure: Figure, n_frames: int, rate_hz: float = 120.0, rom_deg: floa
     t_w += shift[:, None, :]
     caps += shift[:, None, None, :]
     ms = figure.marker_segment
-    markers = t_w[:, ms] + np.einsum("tmij,mj->tmi", R_w[:, ms], figure.marker_offsets)
+    offsets = np.broadcast_to(figure.marker_offsets, (T,) + figure.marker_offsets.shape)
+    if soft_tissue_m > 0:
+        wobble = np.stack([np.stack([_smooth_signal(g, t_s) for _ in range(3)], 1)
+                           for _ in range(figure.marker_offsets.shape[0])], 1)
+        offsets = offsets + soft_tissue_m * wobble
+    markers = t_w[:, ms] + np.einsum("tmij,tmj->tmi", R_w[:, ms], offsets)
     return Motion(world_from_segment_R=R_w, world_from_segment_t=t_w, markers=markers,
                   joint_centres=t_w.copy(), capsules=caps, rate_hz=float(rate_hz))
