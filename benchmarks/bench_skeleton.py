@@ -1,7 +1,10 @@
 """Skeleton solver on random simulated figures: topology success, joint-centre error, time.
 
 Usage: python benchmarks/bench_skeleton.py [n_figures=50] [n_frames=600] [seed_bases=1000]
-[noise_mm=0,1]
+[noise_mm=0,1] [soft_tissue_mm=0]
+(soft_tissue_mm: hw_sim's soft-tissue artefacts, markers sliding +-that much per axis on their
+bones, on top of the noise; the figures and motions are otherwise the same, and the truth -
+joints and tree - does not move with it)
 (0 figures: only the largest case; noise_mm: comma-separated marker noise levels of the seed
 sets, the largest case always runs at 0 and 1 mm; seed_bases: comma-separated, e.g.
 1000,2000,3000,4000,5000,6000 - 1000 is the acceptance set (the figures of
@@ -119,15 +122,19 @@ def failure(fig, res) -> str:
     return "; ".join(out)
 
 
-def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1"):
+def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1", soft_mm="0"):
     noises = [float(n) * 1e-3 for n in str(noises_mm).split(",")]
+    soft = float(soft_mm) * 1e-3
+    if not soft >= 0:
+        raise SystemExit(f"soft_tissue_mm={soft_mm!r}, expected >= 0")
     for base, noise in [(int(b), n) for b in str(bases).split(",") for n in noises
                         ] if n_fig > 0 else ():
         ok, errs, times, kept, close = 0, [], [], [], 0
         for k in range(n_fig):
             g = np.random.default_rng(base + k)
             fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
-            mo = animate(fig, n_frames, rng=g, rom_deg=float(g.uniform(45, 90)))
+            mo = animate(fig, n_frames, rng=g, rom_deg=float(g.uniform(45, 90)),
+                         soft_tissue_m=soft)
             good, e, dt, res = run(fig, mo, noise, k)
             if not good:
                 print(f"  seed {base + k}, noise {noise * 1e3:.0f} mm: {failure(fig, res)}",
@@ -140,7 +147,9 @@ def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1"):
         med = float(np.median(errs)) if errs else float("nan")
         tol = EQUIV_TOL_FACTOR * med
         equiv = sum(topology_equivalent(f, m, r, tol) for f, m, r in kept)
-        print(f"seeds {base}+, noise {noise * 1e3:.0f} mm: (a) topology exact {ok}/{n_fig}; "
+        print(f"seeds {base}+, noise {noise * 1e3:.0f} mm"
+              + (f", soft tissue {soft * 1e3:g} mm" if soft else "")
+              + f": (a) topology exact {ok}/{n_fig}; "
               f"(b) kinematically equivalent {equiv}/{n_fig} (tolerance "
               f"{EQUIV_TOL_FACTOR:.0f} x median joint error = {tol * 1e3:.2f} mm); "
               f"(c) true sibling joints < {CLOSE_SIBLINGS_M * 1e3:.0f} mm apart in "
@@ -237,4 +246,4 @@ def _cpu() -> float:
 
 
 if __name__ == "__main__":
-    main(*(int(a) if i < 2 else a for i, a in enumerate(sys.argv[1:5])))
+    main(*(int(a) if i < 2 else a for i, a in enumerate(sys.argv[1:6])))
