@@ -71,7 +71,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from skeleton.star_fit import VAR_FLOOR_M2, star_misfit
+from skeleton.star_fit import margin_unit, star_misfit
 
 __all__ = ["Junction", "joint_gap", "joint_spread", "junction_groups", "relative_spread",
            "resolve_junctions"]
@@ -284,8 +284,7 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
             ssq = np.array([f.ssq_m2 if f.ok else np.inf for f in fits])
             order = np.argsort(ssq)
             if np.isfinite(ssq[order[1]]) and fits[order[0]].n_res > 0:
-                var = max(ssq[order[0]] / fits[order[0]].n_res, VAR_FLOOR_M2)
-                if ssq[order[1]] - ssq[order[0]] > margin * var:
+                if ssq[order[1]] - ssq[order[0]] > margin * margin_unit(fits[order[0]]):
                     return hubs[int(order[0])]
         spread = np.array([sum(relative_spread(traj, members[h], members[m], c)
                                for m in group if m != h) for h in hubs])

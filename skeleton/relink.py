@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from skeleton.junctions import STAR_MARGIN
-from skeleton.star_fit import MAX_ITER, VAR_FLOOR_M2, star_misfit
+from skeleton.star_fit import MAX_ITER, margin_unit, star_misfit
 from skeleton.topology import tree_from_edges
 
 __all__ = ["relink_by_stars", "PLAUSIBLE", "MAX_MOVES"]
@@ -118,6 +118,6 @@ def relink_by_stars(traj: np.ndarray, members, parents, joint_starts, cost: np.n
 
 def _margin(cur, alt) -> float:
     """How much better ``alt`` fits than ``cur``: the drop in the sum of squares in units
-    of the better fit's residual variance (floored at ``VAR_FLOOR_M2``)."""
-    var = max(min(cur.ssq_m2, alt.ssq_m2) / cur.n_res, VAR_FLOOR_M2)
-    return (cur.ssq_m2 - alt.ssq_m2) / var
+    of the better fit's residual variance (floored at ``VAR_FLOOR_M2``; widened where its
+    residuals are correlated over frames: ``skeleton.star_fit.margin_unit``)."""
+    return (cur.ssq_m2 - alt.ssq_m2) / margin_unit(cur if cur.ssq_m2 <= alt.ssq_m2 else alt)

@@ -36,9 +36,10 @@ from typing import NamedTuple
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from skeleton.star_lm import star_lm
+from skeleton.star_lm import _residuals, star_lm
 
-__all__ = ["StarFit", "star_misfit", "STAR_FRAMES", "VAR_FLOOR_M2"]
+__all__ = ["StarFit", "star_misfit", "margin_unit", "residual_tau", "STAR_FRAMES",
+           "VAR_FLOOR_M2", "TAU_REF"]
 
 STAR_FRAMES = 150   # frames sampled (evenly) for the fit
 VAR_FLOOR_M2 = 1e-10  # residual variance floor (10 um RMS) for margins in units of it: noise-
@@ -49,6 +50,16 @@ JOINT_PULL_MM = 20.0  # each joint is pulled towards its start: 20 mm off adds 1
                       # it a hinge's centre, free along its axis, runs off with the noise and
                       # the fit crawls after it for hundreds of iterations (seed 97022's true
                       # star: unconverged after 400; with it: 7-12)
+TAU_REF = 4.0       # residuals more correlated from frame to frame than this (``residual_tau``)
+                    # widen the margin's unit by the excess (``margin_unit``). The margins
+                    # are sums of squares in units of one residual's variance, which assumes
+                    # independent residuals; a sum over residuals that move together over tau
+                    # frames varies ~tau times more. Low-passed 1 mm noise (the benchmark
+                    # figures: 6 Hz at 120 Hz, 150 of 600 frames) gives tau 2.8-3.2 for the
+                    # better star of every re-link comparison of seeds 1000-1049 (max 3.17);
+                    # skin markers sliding on their bones (hw_sim's soft_tissue_m, 2 mm) give
+                    # 16-26, and on those figures stars re-linked wrongly (acceptance set: 34
+                    # of 50 exact with the star fits, 38 without).
 MAX_ITER = 50       # Levenberg-Marquardt iterations ...
 TOL = 1e-6          # ... until the sum of squares falls by less than this fraction, or by
 STOP_VAR = 0.1      # less than this x the residual variance (hub margins are 200x that)
@@ -68,6 +79,7 @@ class StarFit(NamedTuple):
     n_par: int
     n_iter: int = 0
     joints: dict | None = None
+    tau: float = 1.0
 
 
 def _frames(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -158,8 +170,9 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
     R = np.ascontiguousarray(np.stack(R0))   # (K + 1, F, 3, 3): hub, then the members
     z = np.ascontiguousarray(np.concatenate(zl))   # K >= 1 (checked above)
     j0 = np.ascontiguousarray(j0)
-    t_fit, js_fit = th.copy(), j0.copy()
-    status, ssq, it = star_lm(np.ascontiguousarray(Xs), seg, R, t_fit, y0.copy(),
+    t_fit, js_fit, y_fit = th.copy(), j0.copy(), y0.copy()
+    Xs = np.ascontiguousarray(Xs)
+    status, ssq, it = star_lm(Xs, seg, R, t_fit, y_fit,
                               js_fit, z, j0, JOINT_PULL_MM, MAX_ITER, TOL, STOP_VAR)
     if status == 2:
         return StarFit(False, "normal equations not positive definite or not finite", np.inf,
@@ -169,5 +182,35 @@ def _star_misfit(traj, members, group, hub, centre, n_frames) -> StarFit:
         w = np.full((traj.shape[0], 3), np.nan)
         w[sel] = (t_fit + np.einsum("fij,j->fi", R[0], js_fit[k])) * 1e-3
         joints[s] = w
+    r = np.empty_like(Xs)
+    _residuals(Xs, seg, R, t_fit, y_fit, js_fit, z, r)
     # the data's sum of squares (the pull only guides the search along near-free directions)
-    return StarFit(True, "", float(ssq) * 1e-6, 3 * N * F, n_par, int(it), joints)
+    return StarFit(True, "", float(ssq) * 1e-6, 3 * N * F, n_par, int(it), joints,
+                   residual_tau(r))
+
+
+def margin_unit(best: StarFit) -> float:
+    """The unit of a star comparison's margin (m^2): the better fit's residual variance
+    (floored at ``VAR_FLOOR_M2``), times its residuals' correlation time over ``TAU_REF``
+    where that is > 1."""
+    return (max(best.ssq_m2 / best.n_res, VAR_FLOOR_M2)
+            * max(1.0, best.tau / TAU_REF))
+
+
+def residual_tau(r: np.ndarray) -> float:
+    """Integrated autocorrelation time of residuals ``r`` (F, ...) over their F frames, pooled
+    over every channel: 1 + 2 sum_k rho_k, summed while rho_k > 0 (the initial positive
+    sequence) and k < F / 4. 1 for residuals independent from frame to frame; the number of
+    consecutive frames whose residuals move together in general."""
+    r = np.asarray(r, np.float64).reshape(r.shape[0], -1)
+    r = r - r.mean(0)
+    den = float((r * r).sum())
+    if not den > 0:
+        return 1.0
+    tau = 1.0
+    for k in range(1, max(r.shape[0] // 4, 1)):
+        rho = float((r[k:] * r[:-k]).sum()) / den
+        if rho <= 0:
+            break
+        tau += 2 * rho
+    return tau

@@ -10,9 +10,10 @@ from skeleton.star_fit import STAR_FRAMES, star_misfit
 from tests.skeleton._figures import members
 
 
-def _siblings(seed, min_gap_m, max_gap_m):
+def _siblings(seed, min_gap_m, max_gap_m, soft_tissue_m=0.0):
     """The first random figure from ``seed`` on with two siblings whose joints on their
-    parent lie between the gaps given. Returns (fig, motion, parent, a, b, gap_m)."""
+    parent lie between the gaps given (``soft_tissue_m``: hw_sim's soft-tissue artefacts,
+    the same motion otherwise). Returns (fig, motion, parent, a, b, gap_m)."""
     for s in range(seed, seed + 500):
         g = np.random.default_rng(s)
         fig = random_tree(int(g.integers(5, 12)), (3, 4), rng=g)
@@ -22,7 +23,8 @@ def _siblings(seed, min_gap_m, max_gap_m):
                 for b in ch[i + 1:]:
                     d = float(np.linalg.norm(fig.joint_offsets[a] - fig.joint_offsets[b]))
                     if min_gap_m <= d <= max_gap_m:
-                        mo = animate(fig, 600, rng=g, rom_deg=60.0)
+                        mo = animate(fig, 600, rng=g, rom_deg=60.0,
+                                     soft_tissue_m=soft_tissue_m)
                         return fig, mo, p, int(a), int(b), d
     raise AssertionError("no such siblings")
 
@@ -104,3 +106,37 @@ def test_star_reports_its_fitted_joints_on_the_fitted_frames():
         assert fitted.sum() == STAR_FRAMES
         err = np.linalg.norm(f.joints[s][fitted] - mo.joint_centres[fitted, s], axis=1)
         assert np.median(err) < 0.003, (s, np.median(err))
+
+
+def test_residual_tau_counts_frames_that_move_together():
+    """White residuals: tau ~1; each value held for 5 frames (a moving sum of 5 white
+    samples): tau ~5 (1 + 2 sum_k (1 - k/5)); a constant: 1 (nothing to correlate)."""
+    from skeleton.star_fit import residual_tau
+    w = np.random.default_rng(0).normal(size=(4000, 6))
+    assert abs(residual_tau(w) - 1) < 0.15
+    held = np.cumsum(w, 0)
+    held = held[5:] - held[:-5]
+    assert abs(residual_tau(held) - 5) < 0.6
+    assert residual_tau(np.ones((100, 3))) == 1.0
+
+
+def test_soft_tissue_residuals_move_together_and_widen_the_margin_unit():
+    """The true star's residuals: raw 1 mm noise, tau ~1; low-passed as the solver does,
+    below TAU_REF (the unit is the residual variance); with skin markers sliding 2 mm on
+    their bones (hw_sim's soft_tissue_m) far above it, and the margin's unit grows by
+    tau / TAU_REF."""
+    from skeleton.star_fit import TAU_REF, margin_unit
+    fig, mo, p, a, b, _ = _siblings(0, 0.005, 0.03)
+    c = 0.5 * (mo.joint_centres[:, a] + mo.joint_centres[:, b])
+    g = np.random.default_rng(1)
+    noisy = mo.markers + g.normal(0, 1e-3, mo.markers.shape)
+    raw = star_misfit(noisy, members(fig), {p, a, b}, p, c)
+    low = star_misfit(lowpass(noisy, mo.rate_hz), members(fig), {p, a, b}, p, c)
+    assert raw.tau < 1.5 and 1.5 < low.tau < TAU_REF, (raw.tau, low.tau)
+    assert margin_unit(low) == low.ssq_m2 / low.n_res
+    soft = _siblings(0, 0.005, 0.03, soft_tissue_m=2e-3)[1]
+    assert np.abs(soft.joint_centres - mo.joint_centres).max() < 1e-12   # same motion
+    sft = star_misfit(lowpass(soft.markers + g.normal(0, 1e-3, mo.markers.shape), mo.rate_hz),
+                      members(fig), {p, a, b}, p, c)
+    assert sft.tau > 3 * TAU_REF, sft.tau
+    assert margin_unit(sft) == pytest.approx(sft.ssq_m2 / sft.n_res * sft.tau / TAU_REF)
