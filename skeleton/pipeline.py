@@ -78,6 +78,16 @@ WORLD_GAIN = 8.0       # a joint centre carried by its reference frame with more
                        # fit / world fit error: gain >= 8, 8 joints, world better in all 8
                        # (frame up to 31.9 mm, world <= 6.2); gain 5-8, 23 joints, mixed
                        # (world up to 49 mm)
+WORLD_RES = 1.5        # ... unless the world fit is no joint within the noise (RMS residual
+WORLD_SHIFT = 20.0     # above WORLD_RES x the floor) and its centre lies more than WORLD_SHIFT x
+                       # the frame's carried noise (gain x floor) from the frame fit's: another
+                       # solution (held-out 136015, 1 mm: a 2-marker root's joint with a
+                       # 3-marker child, world residual 2.2x, shift 57.7x, 143.7 mm off the
+                       # truth; the frame fit 3.7 mm). The 29 world placements of 1000-8000
+                       # and 105000-112000 (800 figures): residuals 0.57-0.81x except 107017's
+                       # 2.03x (shift 2.4x; world 1.7 mm off, frame 3.7), shifts of the ball
+                       # fits 0.3-7.5x; 76033's (a hinge the fit did not call one): shift 22x,
+                       # residual 0.7x, world 2.7 mm off, frame 46.8 mm. None is changed
 HINGE_SURE = 1.5       # hinge pairs costing at most this x the median tree-edge cost: sure
 JUNCTION_K = 25.0      # tree joints closer than this x the within-segment distance sd: one
 JUNCTION_COST = 1.5    # junction (skeleton.junctions), re-linked with edges costing at most
@@ -158,8 +168,10 @@ def _world_centre(data, members, p: int, s: int, f: JointFit, noise_m: float) ->
     (``_point_noise_gain``). Such a frame's rotation noise moves the other segment's markers
     by its lever arm, which biases the sphere fit, not only blurs it. The world fit's
     per-frame centres are kept where it has all markers. Elsewhere the centre is their
-    mean in the reference frame, carried by that frame. Cost, hinge and axis stay the
-    frame fit's."""
+    mean in the reference frame, carried by that frame. A world fit that fits no joint
+    within the noise (RMS residual > WORLD_RES x ``noise_m``) and whose centre lies more
+    than WORLD_SHIFT x the frame's carried noise from the frame fit's is another solution:
+    the frame fit stays. Cost, hinge and axis stay the frame fit's."""
     if not f.ok or f.ref not in (0, 1):
         return f
     ref = members[p] if f.ref == 0 else members[s]
@@ -173,6 +185,9 @@ def _world_centre(data, members, p: int, s: int, f: JointFit, noise_m: float) ->
     R, t = kabsch(data[full][:, ref], data[full[0], ref])
     k = np.searchsorted(full, both)
     local = (np.einsum("tij,tj->ti", R[k], w.world[both]) + t[k]).mean(0)
+    if (w.residual_m > WORLD_RES * noise_m and np.linalg.norm(local - f.centre_local)
+            > WORLD_SHIFT * _point_noise_gain(data[full[0], ref], f.world[full[0]]) * noise_m):
+        return f        # no joint within the noise, far off the frame's: another solution
     world = np.full_like(f.world, np.nan)
     world[full] = np.einsum("tji,tj->ti", R, local[None] - t)
     world[both] = w.world[both]
