@@ -38,8 +38,9 @@ and 121000 first run at stop 28 on 760d886 (49 and 50 of 50 at 1 mm); 122000-125
 run at stop 29 on 2ffebb4 (48, 50, 49, 50); 126000-129000 first run with and without
 78a2534's false-anchor veto, chosen on 122025 (195/200 both, identical trees; reverted for
 the real tennis serve, see tests/skeleton/test_real_data.py); 130000-133000 first run at
-stop 31 on 7c3e11d, 134000-135000 on e49ff65 (the star margin's correlation-time unit);
-136000+ untouched)
+stop 31 on 7c3e11d, 134000-135000 on e49ff65 (the star margin's correlation-time unit),
+136000-137000 on fc434c2, whose failure 136015 (a joint 143.7 mm off) then showed 17dd3d1's
+world-placement check; 138000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
