@@ -40,7 +40,7 @@ run at stop 29 on 2ffebb4 (48, 50, 49, 50); 126000-129000 first run with and wit
 the real tennis serve, see tests/skeleton/test_real_data.py); 130000-133000 first run at
 stop 31 on 7c3e11d, 134000-135000 on e49ff65 (the star margin's correlation-time unit),
 136000-137000 on fc434c2, whose failure 136015 (a joint 143.7 mm off) then showed 17dd3d1's
-world-placement check; 138000+ untouched)
+world-placement check; 138000-139000 first run on 17dd3d1 (50, 50); 140000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
