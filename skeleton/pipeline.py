@@ -176,7 +176,10 @@ def _world_centre(data, members, p: int, s: int, f: JointFit, noise_m: float) ->
         return f
     ref = members[p] if f.ref == 0 else members[s]
     full = np.flatnonzero(~np.isnan(data[:, ref]).any(axis=(1, 2)))
-    if full.size == 0 or _point_noise_gain(data[full[0], ref], f.world[full[0]]) <= WORLD_GAIN:
+    if full.size == 0:
+        return f
+    gain = _point_noise_gain(data[full[0], ref], f.world[full[0]])
+    if gain <= WORLD_GAIN:
         return f
     w = fit_joint(data, members[p], members[s], noise_m=noise_m, min_quality=np.inf)
     both = full[~np.isnan(w.world[full]).any(1)] if w.ok else full[:0]
@@ -185,8 +188,8 @@ def _world_centre(data, members, p: int, s: int, f: JointFit, noise_m: float) ->
     R, t = kabsch(data[full][:, ref], data[full[0], ref])
     k = np.searchsorted(full, both)
     local = (np.einsum("tij,tj->ti", R[k], w.world[both]) + t[k]).mean(0)
-    if (w.residual_m > WORLD_RES * noise_m and np.linalg.norm(local - f.centre_local)
-            > WORLD_SHIFT * _point_noise_gain(data[full[0], ref], f.world[full[0]]) * noise_m):
+    if (w.residual_m > WORLD_RES * noise_m
+            and np.linalg.norm(local - f.centre_local) > WORLD_SHIFT * gain * noise_m):
         return f        # no joint within the noise, far off the frame's: another solution
     world = np.full_like(f.world, np.nan)
     world[full] = np.einsum("tji,tj->ti", R, local[None] - t)

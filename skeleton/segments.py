@@ -269,8 +269,9 @@ def _automatic(sd: np.ndarray, A: np.ndarray, k0: int, seed: int, noise: float) 
         if score <= tau:
             break
         cand = _reassign(sd, _merge_rigid(sd, _spectral(A, K, seed), merge_tau))
-        if np.bincount(cand).min() >= 2 and max(_worst_sd(sd, cand), tau) < score:
-            best, score = cand, max(_worst_sd(sd, cand), tau)
+        cand_score = max(_worst_sd(sd, cand), tau)
+        if np.bincount(cand).min() >= 2 and cand_score < score:
+            best, score = cand, cand_score
     return best
 
 
