@@ -363,6 +363,23 @@ def test_hub_chosen_by_the_star_likelihood_where_decisive():
     assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, star_margin=np.inf))
 
 
+@pytest.mark.parametrize("seed", [8008, 152003])
+def test_star_fits_below_the_margin_weigh_in_the_hub_choice(seed, monkeypatch):
+    """Figures of benchmarks/bench_skeleton.py (1 mm noise) whose junction's prior scored
+    the true and a wrong hub within 0.05 and 0.008 of each other (2.025 against 1.975;
+    2.004 against 1.996) and chose the wrong one, while the true hub's star fitted 107x and
+    179x the residual variance better: under STAR_MARGIN, so the prior alone decided. With
+    the fits' excess over the best added at ``STAR_WEIGHT`` per unit the tree is exact;
+    without it (weight 0) it is not."""
+    import skeleton.junctions as junctions
+    from skeleton.pipeline import solve_skeleton
+    fig, mo = bench_figure(seed)
+    noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+    monkeypatch.setattr(junctions, "STAR_WEIGHT", 0.0)
+    assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
+
+
 def test_junction_point_mean_skips_unseen_frames_without_a_warning():
     """The junction point is the mean of its joints' centres where any is seen, NaN where
     none is (np.nanmean's 'Mean of empty slice' warning reached the skeleton command's
