@@ -40,7 +40,11 @@ run at stop 29 on 2ffebb4 (48, 50, 49, 50); 126000-129000 first run with and wit
 the real tennis serve, see tests/skeleton/test_real_data.py); 130000-133000 first run at
 stop 31 on 7c3e11d, 134000-135000 on e49ff65 (the star margin's correlation-time unit),
 136000-137000 on fc434c2, whose failure 136015 (a joint 143.7 mm off) then showed 17dd3d1's
-world-placement check; 138000-139000 first run on 17dd3d1 (50, 50); 140000+ untouched)
+world-placement check; 138000-139000 first run on 17dd3d1 (50, 50); at stop 32,
+140000-161000 first run on 30345b3 (1086/1100), whose failure 144001 (with 130009) showed
+0816003's unraised plausibility; b4cc0b2's star weight chosen on the junction decisions of
+1000-20000; 162000-171000 first run on b4cc0b2 (494/500), 172000-175000 on 0816003
+(198/200); 176000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
