@@ -44,7 +44,7 @@ world-placement check; 138000-139000 first run on 17dd3d1 (50, 50); at stop 32,
 140000-161000 first run on 30345b3 (1086/1100), whose failure 144001 (with 130009) showed
 0816003's unraised plausibility; b4cc0b2's star weight chosen on the junction decisions of
 1000-20000; 162000-171000 first run on b4cc0b2 (494/500), 172000-175000 on 0816003
-(198/200); 176000+ untouched)
+(198/200), 176000-179000 on 4169b02 (the same solver: 50 50 48 50); 180000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
