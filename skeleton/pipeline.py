@@ -47,12 +47,10 @@ from skeleton.topology import skeleton_tree, tree_from_edges
 __all__ = ["SkeletonResult", "solve_skeleton", "lowpass", "warm_up", "COST_CUTOFF_HZ"]
 
 COST_CUTOFF_HZ = 6.0   # low-pass for the topology costs (biomechanics' usual 6 Hz)
-RECHECK = 10.0         # 2+2 pairs re-searched when their quick cost is below RECHECK x ...
-RECHECK_MIN_M = 5e-3   # ... the median tree-edge cost (noise-free data: below this)
-BROKEN_M = 0.02        # ... or above this (no fit: the closed-form start failed; measured on
-                       # 30 held-out figures: 2 of 45 true 2+2 pairs scored 139 and 507 mm,
-                       # 48 of 267 false ones > 20 mm)
-PRUNE = 0.9            # ... and the tree path between them has an edge above this x it
+RECHECK_MIN_M = 5e-3   # noise-free data: pairs of frameless segments costing below this
+                       # are re-tested in completed frames
+PRUNE = 0.9            # 2+2 pairs searched when the tree path between them has an edge
+                       # above this x the noise floor
 POOR_FRAME = 3.0       # markers within this x the noise (distance sd) of a line: no frame
 ANCHOR = 1.5           # frameless segments' anchor joints: cost <= this x the noise floor
 ANCHOR_GAIN = 2.5      # ... and centre noise <= this x the marker noise
@@ -577,34 +575,28 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
         hinge[i, j] = hinge[j, i] = pc.hinge
         radii[i, j] = pc.radii
     first_cost = cost.copy()    # before any completed frame raises a pair (see the re-link)
-    # 2+2-marker pairs got only their closed-form start (an upper bound on their cost). Pairs
-    # that could still matter (below RECHECK x the median tree-edge cost, but above the
-    # noise floor; or no fit at all) get the multi-start search - unless the tree could not
-    # take them: by the cycle property, a pair enters the minimum spanning tree only by
+    # 2+2-marker pairs got only their closed-form start (an upper bound on their cost). Every
+    # pair that could still matter gets the multi-start search - unless the tree could not
+    # take it: by the cycle property, a pair enters the minimum spanning tree only by
     # replacing the costliest edge on the tree path between its segments, and a true pair
-    # costs no less than the noise floor.
+    # costs no less than the noise floor. However high the closed-form start: held-out seed
+    # 178047 (1 mm), true 2+2 pair 1-3 started at 11.5x the floor and searched costs 1.25x;
+    # left unsearched above 10x the floor, the tree hung 3 from its sibling (2.88x), whose
+    # joint with their parent lies 134.5 mm off 3's (seeds 1000-20000 and 160000-179000: the
+    # same failures otherwise, 10 % more time per figure).
     mst = skeleton_tree(cost)
     floor = _tree_floor(cost)
     frameless = np.array([frame_quality(smooth, m) <= min_q for m in members])
     completed = _Completed(smooth, members, cost, floor, frameless, min_q)
     for i, j in zip(*np.triu_indices(S, 1)):
-        upper = RECHECK * floor if noisy else RECHECK_MIN_M
         if (frameless[i] and frameless[j] and 1.2 * floor < cost[i, j]
                 and _path_max(mst, cost, i, j) > PRUNE * floor):
             # a pair its completed frame rejects needs no search (the search only lowers
             # costs). On noise-free data the floor is ~1e-7 m: rejecting above FALSIFY x
             # that rejected true pairs (exact topology 49, 47, 49 of 50 on seed sets
             # 2000/3000/6000), so clean data is rejected above FALSIFY x CLEAN_NOISE_M.
-            # Between `upper` and BROKEN_M a pair is searched only when its completed frames
-            # accept it (seed 25032, 1 mm: a true pair's closed-form start cost 3.7 mm, 13x
-            # the floor; completed, 0.9-1.1x) - or one is the other's anchor: the anchor's
-            # completed frame fitted it within ANCHOR x the floor (seed 74049, 1 mm: a true
-            # pair's closed-form start 15.3x the floor, left unsearched; searched, 1.09x)
-            if completed.applies(i, j):
-                if completed.raise_false(cost, i, j, floor):
-                    mst = skeleton_tree(cost)
-                    continue
-            elif upper <= cost[i, j] <= BROKEN_M and not completed.anchored(i, j):
+            if completed.applies(i, j) and completed.raise_false(cost, i, j, floor):
+                mst = skeleton_tree(cost)
                 continue
             pc = joint_cost(smooth, members[i], members[j], detail=True, min_quality=min_q)
             if pc.cost < cost[i, j]:

@@ -368,13 +368,29 @@ def test_two_marker_pair_without_a_joint_near_its_markers_is_no_joint():
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
 
 
+def test_two_marker_pair_with_a_poor_closed_form_start_is_searched():
+    """Held-out seed 178047 of benchmarks/bench_skeleton.py (1 mm noise; first run at stop
+    32): 2-marker segment 3 hangs from 2-marker segment 1. The pair's closed-form start costs 11.5x the noise floor; searched, 1.25x. Left
+    unsearched (pairs between 10x the floor and 20 mm were searched only when a completed
+    frame accepted them, and neither segment had an anchor), the tree hung 3 from its
+    3-marker sibling 4 (2.88x), whose joint with 1 lies 134.5 mm off 3's."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(178047)
+    assert fig.parents[3] == 1 and fig.parents[4] == 1
+    assert len(m[1]) == len(m[3]) == 2 and len(m[4]) == 3
+    res = solve_skeleton(noisy, mo.rate_hz, rng=0)
+    assert exact_topology(fig, res)
+    sm = segment_map(fig, res.labels)
+    floor = _tree_floor(res.cost)
+    assert res.cost[sm[1], sm[3]] < 1.5 * floor < res.cost[sm[3], sm[4]]
+
+
 def test_pair_anchored_on_the_other_is_searched():
     """Seed 74049 of benchmarks/bench_skeleton.py (1 mm noise; first run at stop 20):
     2-marker segment 5 hangs from 2-marker segment 1, and 5's anchor is 1's completed frame,
     where 5 fits a joint within ANCHOR x the floor. The pair's closed-form start cost 15.3x
-    the floor, between RECHECK x the floor and BROKEN_M, where a pair is searched only when
-    completed frames accept it, and a pair with its own anchor was no completed-frame test:
-    it was never searched, and the tree hung 5 from 0 (6.95x). Searched, it costs 1.09x."""
+    the floor; when pairs above 10x the floor were searched only if completed frames
+    accepted them, a pair with its own anchor was no completed-frame test: it was never
+    searched, and the tree hung 5 from 0 (6.95x). Searched, it costs 1.09x."""
     fig, mo, m, noisy, smooth, min_q, truth = _noisy(74049)
     assert fig.parents[5] == 1 and len(m[1]) == len(m[5]) == 2
     res = solve_skeleton(noisy, mo.rate_hz, rng=0)
