@@ -11,15 +11,21 @@ variance per residual (the junction step's margin, ``skeleton.junctions``), c is
 from a (and symmetrically). An alternative is only fitted where its new pair is a plausible
 joint at all (cost at most ``PLAUSIBLE`` x the floor): otherwise the MST's choice stands
 without a fit. One move per round, the most decisive first, until none is left (at most
-``MAX_MOVES``); fits are cached per triple and hub. A move decided against a current star
-whose fit stopped unconverged (``star_fit.MAX_ITER`` iterations) is checked first: that star
-is fitted again from the joints the winning star found (the same two points), and the
-better of its two fits is compared (seed 109048, 1 mm: siblings 3.1 mm apart, the current
-star started 46-57 mm off the true joints stopped after 50 iterations at 2.1x the winner's
-sum of squares, a 4012x margin; from the winner's joints it fits better than the winner).
-Converged current stars are not re-fitted: doing so also removed a 209x re-link of the
-tennis recordings (the current star converged in 27 iterations), whose mean marker
-deviation then rose from 12.3 to 15.4 mm.
+``MAX_MOVES``); fits are cached per triple and hub. Before a move, each of the two stars
+is fitted again, started at the joints the other one found (the same two points), and the
+better of each star's two fits is compared: the fits are local, and the tree's joints can
+start a star far from its best fit.
+- Seed 109048 (1 mm): siblings 3.1 mm apart; the current star, started 46-57 mm off the
+  true joints, stopped after 50 iterations at 2.1x the winner's sum of squares (a 4012x
+  margin); from the winner's joints it fits better than the winner.
+- Held-out seed 195045 (stop 33): the current star, started at a world fit of two 2-marker
+  segments, converged in 33 iterations at 4178 mm^2 against the wrong star's 534 (6746x);
+  from the winner's joints it fits 168 mm^2. 196001, 197043 alike (263x, 634x wrong).
+- Re-fitting only the current star (stops 24-32 did so where it stopped unconverged; tried
+  at stop 33 before every move) kept the tennis serve's right foot on the left upper arm,
+  where the moves to the left thigh had taken it (mean marker deviation 16.50 -> 20.88 mm;
+  the tree is wrong either way); fitting both stars from both starts gives 17.16 mm. Seed sets 1000-20000 and 180000-199000 (1 mm): see the README's stop 33
+  row.
 
 Seed 4043 of benchmarks/bench_skeleton.py (1 mm): siblings 2 (2 markers) and 4 (3 markers)
 hang from 1 with joints 116 mm apart; the tree hung 2 from 4 (cost 1.26x the floor against
@@ -32,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from skeleton.junctions import STAR_MARGIN
-from skeleton.star_fit import MAX_ITER, margin_unit, star_misfit
+from skeleton.star_fit import margin_unit, star_misfit
 from skeleton.topology import tree_from_edges
 
 __all__ = ["relink_by_stars", "PLAUSIBLE", "MAX_MOVES"]
@@ -92,17 +98,21 @@ def relink_by_stars(traj: np.ndarray, members, parents, joint_starts, cost: np.n
                         if not (cur.ok and alt.ok):
                             continue
                         m = _margin(cur, alt)
-                        if (m > margin and cur.n_iter >= MAX_ITER
-                                and (tri, b, hub) not in refit):
-                            # before a move decided against a current star that stopped
-                            # unconverged: that star again, started at the joints the winner
-                            # found (the same two points), kept when it fits better
+                        if m > margin and (tri, b, hub) not in refit:
+                            # before a move: each star again, started at the joints the
+                            # other found (the same two points: the joint b - hub, and
+                            # moved's joint, with b or with hub), and the better of each
+                            # star's two fits compared
                             refit.add((tri, b, hub))
                             again = star_misfit(traj, members, set(tri), b,
                                                 {hub: alt.joints[b], moved: alt.joints[moved]})
+                            alt2 = star_misfit(traj, members, set(tri), hub,
+                                               {b: cur.joints[hub], moved: cur.joints[moved]})
                             if again.ok and again.ssq_m2 < cur.ssq_m2:
                                 cache[tri, b] = cur = again
-                                m = _margin(cur, alt)
+                            if alt2.ok and alt2.ssq_m2 < alt.ssq_m2:
+                                cache[tri, hub] = alt = alt2
+                            m = _margin(cur, alt)
                         if m > margin and (best is None or m > best[0]):
                             best = (m, moved, b, hub)
         if best is None:
