@@ -212,7 +212,14 @@ def _anchor_points(data, members, cost, floor, frameless, min_quality: float = 0
     segments: four marker distances per frame leave that fit near the floor for false
     siblings, and its closed-form start can be broken for true ones - seed 24010, 1 mm: the
     true parent's world cost 1.2 m, 1.08x the floor in its completed frame; seed 25033: a
-    false sibling 21 mm away at 0.96x the floor, 1.98x in its completed frame).
+    false sibling 21 mm away at 0.96x the floor, 1.98x in its completed frame). A completed
+    neighbour in whose frame a costs more than FALSIFY x the floor (the level at which
+    ``_Completed.raise_false`` calls a pair false) is no candidate, however cheap the world
+    fit (held-out seed 187015, 1 mm: 2-marker segment 14 anchored in the second round on
+    2, completed in the first, at 14.55x in 2's frame - its world fit 1.37x - before its
+    true parent 0, a chain of 2-marker segments away, was completed; through that anchor
+    the true pair 0-14 (0.81x) was raised to 11.3x. Now 14 waits for 0: 1.04x in 0's
+    completed frame).
     Returns the anchors, the data with the anchor points appended as extra markers, and
     each completed segment's column in it."""
     anchors, cols, ext = {}, {}, data
@@ -234,7 +241,8 @@ def _anchor_points(data, members, cost, floor, frameless, min_quality: float = 0
         new = {}
         for a in np.flatnonzero(~has_frame):
             cand = [(frame_cost(a, p), int(p)) for p in np.flatnonzero(has_frame)
-                    if min(cost[a, p], frame_cost(a, p)) <= ANCHOR * floor]
+                    if min(cost[a, p], frame_cost(a, p)) <= ANCHOR * floor
+                    and frame_cost(a, p) <= FALSIFY * max(floor, CLEAN_NOISE_M)]
             if not cand:
                 continue
             _, p = min(cand)                # the cheapest neighbour with a frame, or none

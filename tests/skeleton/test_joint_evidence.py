@@ -334,6 +334,30 @@ def test_frameless_pairs_judged_in_completed_frames(seed):
     assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0))
 
 
+def test_no_anchor_in_a_frame_that_falsifies_the_pair():
+    """Held-out seed 187015 of benchmarks/bench_skeleton.py (1 mm noise; first run at stop
+    33): 2-marker segment 14 hangs from 2-marker root 0, two 2-marker links (0 - 1 - 2)
+    from 2, which a framed child completes in the first round. 14 was anchored on 2 in the
+    second round - its world fit with 2 costs 1.37x the floor, but 14.55x in 2's completed
+    frame - and through that anchor the true pair 0-14 (0.81x) was raised to 11.3x; the tree
+    hung 14 from 2. A frame in which the pair costs more than FALSIFY x the floor is no
+    anchor: 14 waits for 0 (1.04x in 0's completed frame)."""
+    fig, mo, m, noisy, smooth, min_q, truth = _noisy(187015)
+    assert fig.parents[14] == 0 and fig.parents[2] == 1 and fig.parents[1] == 0
+    assert all(len(m[s]) == 2 for s in (0, 1, 2, 14))
+    res = solve_skeleton(noisy, mo.rate_hz, rng=0)
+    assert exact_topology(fig, res)
+    sm = segment_map(fig, res.labels)
+    cost = np.full((fig.n_segments,) * 2, np.inf)
+    for i, j in zip(*np.triu_indices(fig.n_segments, 1)):
+        cost[i, j] = cost[j, i] = joint_cost(smooth, m[i], m[j], min_quality=min_q)
+    floor = _tree_floor(res.cost)
+    frameless = np.array([frame_quality(smooth, mm) <= min_q for mm in m])
+    completed = _Completed(smooth, m, cost, floor, frameless, min_q)
+    assert completed.anchors[14][0] == 0
+    assert res.cost[sm[0], sm[14]] < ANCHOR * floor
+
+
 def test_hinge_centre_stays_free_where_no_plane_fits():
     """Seed 29014 (1 mm noise): a 2-marker root with two 2-marker children. The hinge
     0-1, re-fitted in 1's completed frame, is called a hinge by the statistical test, but
