@@ -45,10 +45,11 @@ world-placement check; 138000-139000 first run on 17dd3d1 (50, 50); at stop 32,
 0816003's unraised plausibility; b4cc0b2's star weight chosen on the junction decisions of
 1000-20000; 162000-171000 first run on b4cc0b2 (494/500), 172000-175000 on 0816003
 (198/200), 176000-179000 on 4169b02 (the same solver: 50 50 48 50); at stop 33,
-178047 showed de4c87f's search of every 2+2 pair the tree could take; 180000-199000 first
-run on de4c87f (976/1000), whose failures 195045, 196001, 197043 showed a935368's star
-re-fits from the other star's joints; 200000-209000 first run on a935368 (497/500),
-then 187015 showed the anchor rule of the next commit; 210000+ untouched)
+178047 showed 5796bbf's search of every 2+2 pair the tree could take; 180000-199000 first
+run on 5796bbf (984/1000), whose failures 195045, 196001, 197043 showed d23b21a's star
+re-fits from the other star's joints; 200000-209000 first run on d23b21a (497/500),
+then 187015 showed 39815fa's anchor rule; 210000-219000 first run on 39815fa (494/500);
+220000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
