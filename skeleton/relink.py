@@ -22,9 +22,10 @@ start a star far from its best fit.
   segments, converged in 33 iterations at 4178 mm^2 against the wrong star's 534 (6746x);
   from the winner's joints it fits 168 mm^2. 196001, 197043 alike (263x, 634x wrong).
 - Re-fitting only the current star (stops 24-32 did so where it stopped unconverged; tried
-  at stop 33 before every move) kept the tennis serve's right foot on the left upper arm,
-  where the moves to the left thigh had taken it (mean marker deviation 16.50 -> 20.88 mm;
-  the tree is wrong either way); fitting both stars from both starts gives 17.16 mm. Seed sets 1000-20000 and 180000-199000 (1 mm): see the README's stop 33
+  at stop 33 before every move) left the tennis serve's right foot on the left upper arm,
+  which two moves (2001x, 566x) had taken on to the left thigh (mean marker deviation
+  16.50 -> 20.88 mm); fitting both stars from both starts moves it once, to the upper back
+  (LSHO T10, 222x): 17.16 mm. The tree is wrong every way (soft tissue). Seed sets 1000-20000 and 180000-199000 (1 mm): see the README's stop 33
   row.
 
 Seed 4043 of benchmarks/bench_skeleton.py (1 mm): siblings 2 (2 markers) and 4 (3 markers)
