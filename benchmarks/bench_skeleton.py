@@ -48,8 +48,8 @@ world-placement check; 138000-139000 first run on 17dd3d1 (50, 50); at stop 32,
 178047 showed 5796bbf's search of every 2+2 pair the tree could take; 180000-199000 first
 run on 5796bbf (984/1000), whose failures 195045, 196001, 197043 showed d23b21a's star
 re-fits from the other star's joints; 200000-209000 first run on d23b21a (497/500),
-then 187015 showed 39815fa's anchor rule; 210000-219000 first run on 39815fa (494/500);
-220000+ untouched)
+then 187015 showed 39815fa's anchor rule; 210000-219000 first run on 39815fa (494/500),
+220000-229000 on 84c7c12 (the same solver: 494/500); 230000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
