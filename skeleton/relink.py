@@ -25,8 +25,8 @@ start a star far from its best fit.
   at stop 33 before every move) left the tennis serve's right foot on the left upper arm,
   which two moves (2001x, 566x) had taken on to the left thigh (mean marker deviation
   16.50 -> 20.88 mm); fitting both stars from both starts moves it once, to the upper back
-  (LSHO T10, 222x): 17.16 mm. The tree is wrong every way (soft tissue). Seed sets 1000-20000 and 180000-199000 (1 mm): see the README's stop 33
-  row.
+  (LSHO T10, 222x): 17.16 mm. The tree is wrong every way (soft tissue). Seed sets
+  1000-20000 and 180000-199000 (1 mm): see the README's stop 33 row.
 
 Seed 4043 of benchmarks/bench_skeleton.py (1 mm): siblings 2 (2 markers) and 4 (3 markers)
 hang from 1 with joints 116 mm apart; the tree hung 2 from 4 (cost 1.26x the floor against

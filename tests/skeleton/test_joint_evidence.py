@@ -394,10 +394,11 @@ def test_two_marker_pair_without_a_joint_near_its_markers_is_no_joint():
 
 def test_two_marker_pair_with_a_poor_closed_form_start_is_searched():
     """Held-out seed 178047 of benchmarks/bench_skeleton.py (1 mm noise; first run at stop
-    32): 2-marker segment 3 hangs from 2-marker segment 1. The pair's closed-form start costs 11.5x the noise floor; searched, 1.25x. Left
-    unsearched (pairs between 10x the floor and 20 mm were searched only when a completed
-    frame accepted them, and neither segment had an anchor), the tree hung 3 from its
-    3-marker sibling 4 (2.88x), whose joint with 1 lies 134.5 mm off 3's."""
+    32): 2-marker segment 3 hangs from 2-marker segment 1. The pair's closed-form start
+    costs 11.5x the noise floor; searched, 1.25x. Left unsearched (pairs between 10x the
+    floor and 20 mm were searched only when a completed frame accepted them, and neither
+    segment had an anchor), the tree hung 3 from its 3-marker sibling 4 (2.88x), whose
+    joint with 1 lies 134.5 mm off 3's."""
     fig, mo, m, noisy, smooth, min_q, truth = _noisy(178047)
     assert fig.parents[3] == 1 and fig.parents[4] == 1
     assert len(m[1]) == len(m[3]) == 2 and len(m[4]) == 3
