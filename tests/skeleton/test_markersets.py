@@ -399,7 +399,13 @@ def test_cross_exchange_never_flips_a_rigid_pair(monkeypatch):
     before = merge_fragments(X, repair_swaps=False)
     assert all(len({int(owner[f]) for f in g}) == 1 for g in before.groups)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
-    # without the turning veto, step 4b mixes the two markers (the failure guarded against)
+    # without the turning veto, step 4b mixes the two markers (the failure guarded against;
+    # since stop 34 step 8's direction rule would put them right again, so it is off here)
+    import functools
+
+    import skeleton.markersets as ms
+    monkeypatch.setattr(ms, "_sphere_exchanges",
+                        functools.partial(ms._sphere_exchanges, direction_margin=np.inf))
     assert _mixed_with(monkeypatch, X, owner, "_repair_cross",
                        turn_margin=np.inf) == [[11, 12], [11, 12]]
     assert fig.marker_segment[11] == fig.marker_segment[12]
@@ -466,3 +472,22 @@ def test_two_markers_hidden_together_are_told_apart_by_their_joint_spheres(monke
     _check(fig, X, owner, merge_fragments(X), mo.markers)
     # without step 8 the two markers stay mixed (the failure guarded against)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", max_rounds=0) == [pair]
+
+
+@pytest.mark.parametrize("k, pair", [(157, [18, 19]), (1504, [0, 1]), (1646, [14, 15])])
+def test_two_markers_exchanged_are_told_apart_by_their_direction_in_a_neighbour(
+        monkeypatch, k, pair):
+    """Benchmark figure 157 (failing since stop 16) and held-out figures 1504, 1646 (first
+    runs at stop 34): the two markers of a 2-marker segment are exchanged across gaps no
+    earlier step can judge, and they sit at about the same distance from their joint, so
+    their joint spheres cannot tell them apart either. In a neighbouring body's frame the
+    direction from one to the other stays within the joint's range of motion, and an
+    exchange flips it: step 8 makes the exchange that concentrates it (mean resultant
+    length 0.36 -> 0.94 in 1646's parent's frame)."""
+    fig, mo, X, owner = _bench_figure(k)
+    seg = fig.marker_segment
+    assert seg[pair[0]] == seg[pair[1]] and (seg == seg[pair[0]]).sum() == 2
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    # without the direction rule the two markers stay exchanged (the failure guarded against)
+    assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges",
+                       direction_margin=np.inf) == [pair, pair]
