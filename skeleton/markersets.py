@@ -179,8 +179,10 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    1646's parent's frame 0.36 -> 0.94). ``/tmp`` screen of figures 0-1719, one
    ``merge_fragments`` per figure as ``bench_markersets.py`` builds them: 0-999 993 -> 994
    of 1000, 1000-1479 (held out at stops 25-31) the same 11 failures, 1480-1719 (first run
-   at stop 34, on the code before) 235 -> 237 of 240; none lost. Real recordings: merged
-   groups identical with and without it (all 9 files of ../shared/data/c3d).
+   at stop 34, on the code before) 235 -> 237 of 240; none lost. Held out, first run
+   1720-1839 with and without it: 117 of 120 both, identical per figure (1749, 1750:
+   pieces of two segments; 1833: two ids for one marker). Real recordings: merged groups
+   identical with and without it (all 9 files of ../shared/data/c3d).
 
 The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
 (1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on
