@@ -491,3 +491,25 @@ def test_two_markers_exchanged_are_told_apart_by_their_direction_in_a_neighbour(
     # without the direction rule the two markers stay exchanged (the failure guarded against)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges",
                        direction_margin=np.inf) == [pair, pair]
+
+
+def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
+    """Held-out figure 1833 (first run at stop 34): the linkage merges marker 17 right;
+    the swap repair (steps 4-4c) moves its first fragment out and a piece of marker 15
+    (same segment) in, and step 8 moves that piece back out, leaving marker 17 as two ids
+    5.1 mm apart (pose-aligned) that nothing merged after step 8. Merging within
+    ``max_distance_m`` now runs again after step 8."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(1833)
+    after8 = []
+    step8 = ms._sphere_exchanges
+
+    def spy(*a, **kw):
+        out = step8(*a, **kw)
+        after8.append(out[0])
+        return out
+
+    monkeypatch.setattr(ms, "_sphere_exchanges", spy)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    # step 8 left marker 17 as two ids (the state the final merge puts right)
+    assert sum(17 in {int(owner[f]) for f in g} for g in after8[0]) == 2
