@@ -1333,19 +1333,12 @@ def _sphere_verdict(pts, ga, gb, na, nb, moved):
     return sk, sm, pk / nd, pm / nd, n
 
 
-def _direction_spread(X, frame, ga, gb) -> float:
-    """Mean resultant length (0-1) of the unit direction from marker ``ga`` to marker
-    ``gb`` (fragment lists of ``X``) in a body's ``frame`` (``_body_frame``), over the frames
-    both are seen with the body; NaN under ``DIRECTION_FRAMES`` such frames."""
+def _direction_spread(ends, frame) -> float:
+    """Mean resultant length (0-1) of the unit direction from the first to the second of
+    two markers' tracks ``ends`` (T, 2, 3) in a body's ``frame`` (``_body_frame``), over the
+    frames both are seen with the body; NaN under ``DIRECTION_FRAMES`` such frames."""
     fr, R, _ = frame
-    ends = []
-    for grp in (ga, gb):
-        y = np.full((fr.size, 3), np.nan)
-        for f in grp:
-            ok = ~np.isnan(X[fr, f, 0])
-            y[ok] = X[fr[ok], f]
-        ends.append(y)
-    d = np.einsum("bij,bj->bi", R, ends[1] - ends[0])
+    d = np.einsum("bij,bj->bi", R, ends[fr, 1] - ends[fr, 0])
     d = d[~np.isnan(d[:, 0])]
     if len(d) < DIRECTION_FRAMES:
         return float("nan")
@@ -1392,6 +1385,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                 continue
             done = set()
             kept = {}                     # body -> the current assignment's direction spread
+            kept_ends = P[:, [a, b]]        # the current tracks (kept current by _exchange)
             for na, nb in _cross_alternatives(span, ga, gb):
                 key = frozenset((frozenset(na), frozenset(nb)))
                 if key in done:
@@ -1404,14 +1398,15 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                     moved = rest           # the smaller side is the exchanged piece
                 gain, veto = 0.0, False
                 spread = []               # (kept, exchanged) direction spread per body
+                ends = _tracks(X, [na, nb])
                 for body in frames:
                     if a in body or b in body:
                         continue
                     pts = {f: points(body, f) for f in ga + gb}
                     v = _sphere_verdict(pts, ga, gb, na, nb, moved)
                     if body not in kept:
-                        kept[body] = _direction_spread(X, frames[body], ga, gb)
-                    spread.append((kept[body], _direction_spread(X, frames[body], na, nb)))
+                        kept[body] = _direction_spread(kept_ends, frames[body])
+                    spread.append((kept[body], _direction_spread(ends, frames[body])))
                     if v is None:
                         continue
                     sk, sm, pk, pm, n = v
