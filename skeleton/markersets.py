@@ -31,6 +31,13 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    ``continuity_frames`` (10) frames before the gap, extrapolated at constant velocity to
    the middle of the gap, and one fitted to the first 10 after, extrapolated backward, meet
    within ``continuity_m`` (10 mm); the key is the smaller of that miss and the distance.
+   Long gaps wait (``defer_gap``, 60 frames): the first passes merge only pairs at most
+   60 frames apart, repeated until they stop merging, and only then are longer gaps
+   judged. A minimum over sample pairs across a long gap can fall below the threshold by
+   chance, and a short fragment aligns only on partners seen across both lives, which
+   are often across a joint (figure 1749: the first 94 frames of a marker sat 7.6 mm from
+   a marker of another segment 209 frames later, while the marker's own next fragment, 27
+   frames on, measured 16.7 mm; once the short gaps are merged, the partners span it);
 4. swap repair: the linkage decides each gap on one minimum distance, and two markers of one
    segment that vanish together can come back exchanged (each id then holds fragments of
    both). For every two merged markers that are rigid with respect to each other (sd of
@@ -361,7 +368,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
                     n_markers: int | None = None, samples: int = 12, neighbours: int = 3,
                     max_passes: int = 4, loose_distance_m: float = 0.1,
                     repair_swaps: bool = True, swap_margin: float = 1.0,
-                    continuity_m: float = 0.01, rng=None) -> MarkerSets:
+                    continuity_m: float = 0.01, defer_gap: int | None = 60, rng=None) -> MarkerSets:
     """Merge fragment columns of ``trajectories`` (T, F, 3) into physical markers.
 
     ``max_distance_m`` (12 mm) sits below the spacing of markers on one segment (real
@@ -382,6 +389,8 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
     extrapolations across a gap for which a pair beyond ``max_distance_m`` still merges
     (module docstring, step 3).
+    ``defer_gap`` (60 frames; None turns it off): the longest gap merged before longer
+    gaps are judged (module docstring, step 3).
     ``rng`` is unused (the method is deterministic) and accepted for the pipeline's
     uniform signature."""
     X = np.asarray(trajectories, np.float64)
@@ -395,11 +404,20 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         raise ValueError(f"swap_margin={swap_margin!r}, expected >= 0")
     if not continuity_m >= 0:
         raise ValueError(f"continuity_m={continuity_m!r}, expected >= 0")
+    if defer_gap is not None and not defer_gap >= 1:
+        raise ValueError(f"defer_gap={defer_gap!r}, expected >= 1 frame or None")
     if neighbours < 3:
         raise ValueError(f"neighbours={neighbours!r}, expected >= 3 (a pose needs 3 points)")
     first = _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
-                        continuity_m=continuity_m)
+                        continuity_m=continuity_m, max_gap=defer_gap)
     res = first
+    if defer_gap is not None:
+        for _ in range(max_passes):
+            nxt = _merge_pass(res.positions, 1, max_distance_m, n_markers, samples, neighbours,
+                              continuity_m=continuity_m, max_gap=defer_gap)
+            if nxt.n_markers == res.n_markers:
+                break
+            res = _regroup(X, res, nxt)
     for k in range(max_passes):
         last = k == max_passes - 1
         nxt = _merge_pass(res.positions, 1, loose_distance_m if last else max_distance_m,
@@ -1166,7 +1184,7 @@ def _junctions(ra, rb):
 
 def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
                 partner_sd_weight=0.5, gap_weight_m=1e-4, continuity_m=0.0,
-                continuity_frames=10, continuity_max_gap=45) -> MarkerSets:
+                continuity_frames=10, continuity_max_gap=45, max_gap=None) -> MarkerSets:
     """One merge: drop short fragments, pose-aligned distances, constrained linkage."""
     T, F = X.shape[:2]
     vis = ~np.isnan(X).any(2)
@@ -1248,6 +1266,8 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
                 rescued[e] = True
     cand = np.flatnonzero((dist <= max_distance_m) | rescued)
     gap = np.array([_gap(frames[iu[e]], frames[ju[e]]) for e in cand], np.float64)
+    if max_gap is not None:
+        cand, gap = cand[gap <= max_gap], gap[gap <= max_gap]
     key = dist[cand] + gap_weight_m * gap
     for e in cand[np.argsort(key, kind="stable")]:
         if len(members) <= lower:

@@ -10,6 +10,7 @@ from tests.skeleton._figures import fragment, marker_spacing
 
 MIN_FRAMES = 10
 NOISE_M = 1e-3
+NO_DEFER = {"defer_gap": None}     # long gaps judged with the short ones (before stop 35)
 MIN_SPACING_M = 0.02   # real marker sets keep markers apart (14 mm markers cannot overlap)
 
 
@@ -111,13 +112,16 @@ def _bench_figure(k):
 def test_swapped_markers_of_one_segment_are_repaired(k):
     """Benchmark figures 26 and 55 (same-segment markers >= 20 mm apart): the linkage alone
     swaps two markers of one segment across a gap (each id holds fragments of both); the
-    swap repair (rigidity with respect to the segment's other markers) undoes it."""
+    swap repair (rigidity with respect to the segment's other markers) undoes it. Since
+    stop 35 the linkage gets 26 right by itself when it merges short gaps first (step 3's
+    ``defer_gap``), so the swap is made here with long gaps not deferred."""
     fig, mo, X, owner = _bench_figure(k)
-    before = merge_fragments(X, repair_swaps=False)
+    before = merge_fragments(X, repair_swaps=False, **NO_DEFER)
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert len(mixed) == 2                      # the failure this test guards against
     a, b = ({int(owner[f]) for f in g} for g in mixed)
     assert a == b and len({int(fig.marker_segment[m]) for m in a}) == 1
+    _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
@@ -250,12 +254,15 @@ def test_motion_continuity_rescues_a_continuation_beyond_max_distance(k):
     """Benchmark figure 25: the right continuation of a fragment lies 13.6 mm away after
     pose alignment (above max_distance_m), so without the continuity cue the fragment is
     merged later with a marker of another segment; its end, extrapolated at constant
-    velocity, meets the continuation's start within 5 mm, which merges them."""
+    velocity, meets the continuation's start within 5 mm, which merges them. (With short
+    gaps merged first, step 3's ``defer_gap``, the pose alignment alone gets it right since
+    stop 35, so the failure is shown with long gaps not deferred.)"""
     fig, mo, X, owner = _bench_figure(k)
-    before = merge_fragments(X, continuity_m=0.0)
+    before = merge_fragments(X, continuity_m=0.0, **NO_DEFER)
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert mixed                                # the failure this test guards against ...
     assert any(len({int(fig.marker_segment[owner[f]]) for f in g}) > 1 for g in mixed)
+    _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
@@ -341,20 +348,23 @@ def test_two_marker_segment_left_as_three_ids_becomes_two(monkeypatch, k):
     direction tells them apart); the right one turns the direction between them by 27.5 /
     92.3 deg across fragment changes, the other by 176.4 / 228.7 deg: step 7
     (``_two_of_three``) makes the two markers of the split that turns least (>= 60 deg,
-    step 4's ``turn_margin``, less)."""
+    step 4's ``turn_margin``, less). Since stop 35 the linkage gets both right by itself
+    when it merges short gaps first (step 3's ``defer_gap``); the failure is shown with
+    long gaps not deferred."""
     from skeleton import markersets
     fig, mo, X, owner = _bench_figure(k)
     monkeypatch.setattr(markersets, "_two_of_three", lambda X, groups, *a, **kw: groups)
     # step 8 (after step 7) would make the mixed id of 719 pure, but not join the split
     monkeypatch.setattr(markersets, "_sphere_exchanges",
                         lambda X, groups, *a, **kw: (groups, False))
-    kept = merge_fragments(X)
+    kept = merge_fragments(X, **NO_DEFER)
     mixed = [g for g in kept.groups if len({int(owner[f]) for f in g}) > 1]
     assert kept.n_markers == fig.n_markers + 1 and len(mixed) == 1   # the failure ...
     (m, n) = sorted({int(owner[f]) for f in mixed[0]})
     seg = fig.marker_segment[m]
     assert fig.marker_segment[n] == seg and (fig.marker_segment == seg).sum() == 2  # ... here
     monkeypatch.undo()
+    _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
@@ -376,14 +386,16 @@ def test_three_ids_of_two_segments_stay_apart(monkeypatch):
     assert sorted(map(sorted, after)) == sorted(map(sorted, groups))
 
 
-def _mixed_with(monkeypatch, X, owner, step, **kw):
+def _mixed_with(monkeypatch, X, owner, step, merge_kw=None, **kw):
     """The physical markers (sorted) of each mixed id when the repair step ``step`` (a
-    function of skeleton.markersets) runs with ``kw``."""
+    function of skeleton.markersets) runs with ``kw`` (``merge_fragments`` with
+    ``merge_kw``)."""
     import functools
 
     import skeleton.markersets as ms
     monkeypatch.setattr(ms, step, functools.partial(getattr(ms, step), **kw))
-    out = [sorted({int(owner[f]) for f in g}) for g in merge_fragments(X).groups]
+    out = [sorted({int(owner[f]) for f in g})
+           for g in merge_fragments(X, **(merge_kw or {})).groups]
     monkeypatch.undo()
     return [m for m in out if len(m) > 1]
 
@@ -436,11 +448,14 @@ def test_piece_off_a_rigid_body_moves_to_the_marker_it_fits(monkeypatch, k, mark
     to the piece (sd 12.1-15.2 and 5.2-11.2 x s0), so it has no step-4c judge there (a judge
     is rigid to the piece) and stayed. Step 4c now counts such a one-body partner, or one
     at another distance, as proof that the piece is not that marker; it moves to the one
-    marker it fits (its own: 1.0-1.2 x s0)."""
+    marker it fits (its own: 1.0-1.2 x s0). Since stop 35 the linkage no longer makes
+    186's piece when it merges short gaps first (step 3's ``defer_gap``); the failure is
+    shown with long gaps not deferred."""
     fig, mo, X, owner = _bench_figure(k)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+    _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     # without one-body partners as proof, the piece stays (the failure guarded against)
-    assert _mixed_with(monkeypatch, X, owner, "_move_misfits",
+    assert _mixed_with(monkeypatch, X, owner, "_move_misfits", merge_kw=NO_DEFER,
                        one_body=0.0) == [sorted((marker, other))]
     assert fig.marker_segment[marker] != fig.marker_segment[other]
 
@@ -483,13 +498,16 @@ def test_two_markers_exchanged_are_told_apart_by_their_direction_in_a_neighbour(
     their joint spheres cannot tell them apart either. In a neighbouring body's frame the
     direction from one to the other stays within the joint's range of motion, and an
     exchange flips it: step 8 makes the exchange that concentrates it (mean resultant
-    length 0.36 -> 0.94 in 1646's parent's frame)."""
+    length 0.36 -> 0.94 in 1646's parent's frame). Since stop 35 the linkage no longer
+    exchanges 1646's pair when it merges short gaps first (step 3's ``defer_gap``); the
+    failure is shown with long gaps not deferred."""
     fig, mo, X, owner = _bench_figure(k)
     seg = fig.marker_segment
     assert seg[pair[0]] == seg[pair[1]] and (seg == seg[pair[0]]).sum() == 2
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+    _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     # without the direction rule the two markers stay exchanged (the failure guarded against)
-    assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges",
+    assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", merge_kw=NO_DEFER,
                        direction_margin=np.inf) == [pair, pair]
 
 
@@ -498,7 +516,8 @@ def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     the swap repair (steps 4-4c) moves its first fragment out and a piece of marker 15
     (same segment) in, and step 8 moves that piece back out, leaving marker 17 as two ids
     5.1 mm apart (pose-aligned) that nothing merged after step 8. Merging within
-    ``max_distance_m`` now runs again after step 8."""
+    ``max_distance_m`` now runs again after step 8. (Since stop 35 the linkage's deferral
+    of long gaps, step 3's ``defer_gap``, avoids the state; it is shown without it.)"""
     import skeleton.markersets as ms
     fig, mo, X, owner = _bench_figure(1833)
     after8 = []
@@ -510,6 +529,27 @@ def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
         return out
 
     monkeypatch.setattr(ms, "_sphere_exchanges", spy)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     # step 8 left marker 17 as two ids (the state the final merge puts right)
     assert sum(17 in {int(owner[f]) for f in g} for g in after8[0]) == 2
+    monkeypatch.undo()
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+
+
+@pytest.mark.parametrize("k", [1183, 1749])
+def test_long_gaps_are_judged_after_the_short_ones_merge(k):
+    """Figures 1183 and 1749 (held out at stop 34): the first pass joined a fragment of one
+    marker to a fragment of another segment's marker across a long gap (1749: 7.6 mm
+    pose-aligned across 209 frames), while the right continuation 27 frames on, aligned on
+    partners across a joint, measured 16.7 mm. Merging gaps of at most ``defer_gap``
+    frames first lets the partners span the short gap; without it the figure fails."""
+    fig, mo, X, owner = _bench_figure(k)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    off = merge_fragments(X, defer_gap=None)
+    assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
+
+
+def test_defer_gap_is_checked():
+    X = np.zeros((20, 3, 3))
+    with pytest.raises(ValueError, match="defer_gap"):
+        merge_fragments(X, defer_gap=0)
