@@ -410,14 +410,28 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         raise ValueError(f"neighbours={neighbours!r}, expected >= 3 (a pose needs 3 points)")
     first = _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
                         continuity_m=continuity_m, max_gap=defer_gap)
+
+    def merge_again(res, loose_last, rounds=max_passes + 1, max_gap=None):
+        # strict passes on the merged markers while they merge and there are more markers
+        # than the bound, then (``loose_last``) loose ones likewise
+        loose = False
+        for _ in range(rounds):
+            if res.n_markers <= first.n_min:
+                break
+            nxt = _merge_pass(res.positions, 1, loose_distance_m if loose else max_distance_m,
+                              n_markers, samples, neighbours, continuity_m=continuity_m,
+                              max_gap=max_gap)
+            if nxt.n_markers == res.n_markers:
+                if loose or not loose_last:
+                    break
+                loose = True
+                continue
+            res = _regroup(X, res, nxt)
+        return res
+
     res = first
     if defer_gap is not None:
-        for _ in range(max_passes):
-            nxt = _merge_pass(res.positions, 1, max_distance_m, n_markers, samples, neighbours,
-                              continuity_m=continuity_m, max_gap=defer_gap)
-            if nxt.n_markers == res.n_markers:
-                break
-            res = _regroup(X, res, nxt)
+        res = merge_again(res, False, rounds=max_passes, max_gap=defer_gap)
     for k in range(max_passes):
         last = k == max_passes - 1
         nxt = _merge_pass(res.positions, 1, loose_distance_m if last else max_distance_m,
@@ -431,24 +445,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     if repair_swaps and res.n_markers >= 3:
         res = _with_groups(X, res, _repair_swaps(X, [list(g) for g in res.groups],
                                                  min_frames, swap_margin))
-
-        def merge_again(res, loose_last):
-            # a marker left as two ids beside a swap (the swap made them overlap) can merge now
-            loose = False
-            for _ in range(max_passes + 1):
-                if res.n_markers <= first.n_min:
-                    break
-                nxt = _merge_pass(res.positions, 1,
-                                  loose_distance_m if loose else max_distance_m,
-                                  n_markers, samples, neighbours, continuity_m=continuity_m)
-                if nxt.n_markers == res.n_markers:
-                    if loose or not loose_last:
-                        break
-                    loose = True
-                    continue
-                res = _regroup(X, res, nxt)
-            return res
-
+        # a marker left as two ids beside a swap (the swap made them overlap) can merge now
         res = merge_again(res, True)
         groups = _join_by_partners(X, [list(g) for g in res.groups], min_frames, first.n_min)
         groups = _two_of_three(X, groups, min_frames, first.n_min)
