@@ -37,7 +37,17 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    chance, and a short fragment aligns only on partners seen across both lives, which
    are often across a joint (figure 1749: the first 94 frames of a marker sat 7.6 mm from
    a marker of another segment 209 frames later, while the marker's own next fragment, 27
-   frames on, measured 16.7 mm; once the short gaps are merged, the partners span it);
+   frames on, measured 16.7 mm; once the short gaps are merged, the partners span it).
+   No merge makes a marker cross a gap faster than ``speed_gate`` (1.5) times the fastest
+   frame-to-frame step of any fragment of the recording (the straight line from the end of
+   one run to the start of the next, per frame of the gap): a body's markers do not move
+   faster unseen than they are ever seen to. On figures 0-99 of bench_markersets.py the
+   6195 joins of the merged markers (all right) crossed their gaps at <= 0.88 times that
+   fastest step; figure 1026 (held out at stop 35) put a 14-frame piece of another
+   segment's marker into a 5- and a 7-frame gap of a marker, at 3.3 and 2.5 times it
+   (246 mm in 5 frames). ``/tmp`` screen of figures 0-1839, one ``merge_fragments`` per
+   figure as ``bench_markersets.py`` builds them (stop 36): 1827 -> 1829/1840 (fixed 1026
+   and 1704), none lost; the real recordings' merged groups are identical with and without;
 4. swap repair: the linkage decides each gap on one minimum distance, and two markers of one
    segment that vanish together can come back exchanged (each id then holds fragments of
    both). For every two merged markers that are rigid with respect to each other (sd of
@@ -368,7 +378,8 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
                     n_markers: int | None = None, samples: int = 12, neighbours: int = 3,
                     max_passes: int = 4, loose_distance_m: float = 0.1,
                     repair_swaps: bool = True, swap_margin: float = 1.0,
-                    continuity_m: float = 0.01, defer_gap: int | None = 60, rng=None) -> MarkerSets:
+                    continuity_m: float = 0.01, defer_gap: int | None = 60,
+                    speed_gate: float | None = 1.5, rng=None) -> MarkerSets:
     """Merge fragment columns of ``trajectories`` (T, F, 3) into physical markers.
 
     ``max_distance_m`` (12 mm) sits below the spacing of markers on one segment (real
@@ -391,6 +402,8 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     (module docstring, step 3).
     ``defer_gap`` (60 frames; None turns it off): the longest gap merged before longer
     gaps are judged (module docstring, step 3).
+    ``speed_gate`` (1.5; None turns it off): no merge whose marker would cross a gap faster
+    than this x the fastest frame-to-frame step of any fragment (module docstring, step 3).
     ``rng`` is unused (the method is deterministic) and accepted for the pipeline's
     uniform signature."""
     X = np.asarray(trajectories, np.float64)
@@ -406,10 +419,19 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         raise ValueError(f"continuity_m={continuity_m!r}, expected >= 0")
     if defer_gap is not None and not defer_gap >= 1:
         raise ValueError(f"defer_gap={defer_gap!r}, expected >= 1 frame or None")
+    if speed_gate is not None and not speed_gate > 0:
+        raise ValueError(f"speed_gate={speed_gate!r}, expected > 0 or None")
     if neighbours < 3:
         raise ValueError(f"neighbours={neighbours!r}, expected >= 3 (a pose needs 3 points)")
+    max_step = np.inf
+    if speed_gate is not None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            steps = np.linalg.norm(np.diff(X, axis=0), axis=2)
+        if np.isfinite(steps).any():
+            max_step = speed_gate * float(np.nanmax(steps))
     first = _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
-                        continuity_m=continuity_m, max_gap=defer_gap)
+                        continuity_m=continuity_m, max_gap=defer_gap, max_step=max_step)
 
     def merge_again(res, loose_last, rounds=max_passes + 1, max_gap=None):
         # strict passes on the merged markers while they merge and there are more markers
@@ -420,7 +442,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
                 break
             nxt = _merge_pass(res.positions, 1, loose_distance_m if loose else max_distance_m,
                               n_markers, samples, neighbours, continuity_m=continuity_m,
-                              max_gap=max_gap)
+                              max_gap=max_gap, max_step=max_step)
             if nxt.n_markers == res.n_markers:
                 if loose or not loose_last:
                     break
@@ -435,7 +457,8 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     for k in range(max_passes):
         last = k == max_passes - 1
         nxt = _merge_pass(res.positions, 1, loose_distance_m if last else max_distance_m,
-                          n_markers, samples, neighbours, continuity_m=continuity_m)
+                          n_markers, samples, neighbours, continuity_m=continuity_m,
+                          max_step=max_step)
         if nxt.n_markers == res.n_markers:
             if last or nxt.n_markers <= first.n_min:
                 break
@@ -1181,8 +1204,10 @@ def _junctions(ra, rb):
 
 def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
                 partner_sd_weight=0.5, gap_weight_m=1e-4, continuity_m=0.0,
-                continuity_frames=10, continuity_max_gap=45, max_gap=None) -> MarkerSets:
-    """One merge: drop short fragments, pose-aligned distances, constrained linkage."""
+                continuity_frames=10, continuity_max_gap=45, max_gap=None,
+                max_step=np.inf) -> MarkerSets:
+    """One merge: drop short fragments, pose-aligned distances, constrained linkage
+    (``max_step``: no merge that crosses a gap faster than this per frame, m)."""
     T, F = X.shape[:2]
     vis = ~np.isnan(X).any(2)
     keep = np.flatnonzero(vis.sum(0) >= min_frames)
@@ -1266,12 +1291,28 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
     if max_gap is not None:
         cand, gap = cand[gap <= max_gap], gap[gap <= max_gap]
     key = dist[cand] + gap_weight_m * gap
+    # each cluster's runs (first frame, last frame, first position, last position)
+    runs_of = {c: [(int(f[lo]), int(f[hi - 1]), Xk[f[lo], c], Xk[f[hi - 1], c])
+                   for lo, hi in zip(np.r_[0, cut], np.r_[cut, f.size])]
+               for c, f in enumerate(frames)
+               for cut in [np.flatnonzero(np.diff(f) > 1) + 1]}
+
+    def too_fast(ci, cj) -> bool:
+        """the merged marker would jump a gap faster than max_step per frame"""
+        rs = sorted([(r, 0) for r in runs_of[ci]] + [(r, 1) for r in runs_of[cj]],
+                    key=lambda q: q[0][0])
+        return any(s0 != s1 and np.linalg.norm(r1[2] - r0[3]) > max_step * (r1[0] - r0[1])
+                   for (r0, s0), (r1, s1) in zip(rs[:-1], rs[1:]))
+
     for e in cand[np.argsort(key, kind="stable")]:
         if len(members) <= lower:
             break
         ci, cj = cluster[iu[e]], cluster[ju[e]]
         if ci == cj or (seen[ci] & seen[cj]).any():
             continue
+        if np.isfinite(max_step) and too_fast(ci, cj):
+            continue
+        runs_of[ci] = runs_of[ci] + runs_of.pop(cj)
         for m in members[cj]:
             cluster[m] = ci
         members[ci] += members.pop(cj)

@@ -549,6 +549,24 @@ def test_long_gaps_are_judged_after_the_short_ones_merge(k):
     assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
 
 
+def test_no_merge_crosses_a_gap_faster_than_any_fragment_moves():
+    """Figure 1026 (held out at stop 35): a later pass put a 14-frame piece of another
+    segment's marker into two short gaps of a marker, jumping 246 mm in 5 frames (3.3 x
+    the fastest frame-to-frame step of any fragment). The speed gate refuses that merge;
+    without it the figure fails."""
+    fig, mo, X, owner = _bench_figure(1026)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    off = merge_fragments(X, speed_gate=None)
+    assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
+
+
+def test_speed_gate_is_checked():
+    X = np.zeros((20, 3, 3))
+    for bad in (0, -1.0):
+        with pytest.raises(ValueError, match="speed_gate"):
+            merge_fragments(X, speed_gate=bad)
+
+
 def test_defer_gap_is_checked():
     X = np.zeros((20, 3, 3))
     with pytest.raises(ValueError, match="defer_gap"):
