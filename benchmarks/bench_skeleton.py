@@ -49,7 +49,11 @@ world-placement check; 138000-139000 first run on 17dd3d1 (50, 50); at stop 32,
 run on 5796bbf (984/1000), whose failures 195045, 196001, 197043 showed d23b21a's star
 re-fits from the other star's joints; 200000-209000 first run on d23b21a (497/500),
 then 187015 showed 39815fa's anchor rule; 210000-219000 first run on 39815fa (494/500),
-220000-229000 on 84c7c12 (the same solver: 494/500); 230000+ untouched)
+220000-229000 on 84c7c12 (the same solver: 494/500); at stop 34-35, 230000-259000 first
+run (see the README), and 235004 showed 9c1f0c1's re-fit rounds; at stop 36, 240014 showed
+the re-link's move order (relink.ORDER_MOVES), 260000-269000 were first run on it (492/500),
+and 267024 then showed the continued star fits (relink.CONTINUE_FITS); 270000-279000 first
+run on that code; 280000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);

@@ -142,6 +142,42 @@ def test_the_two_stars_are_refitted_from_each_other_until_neither_improves(monke
     assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
 
 
+def test_a_star_stopped_at_its_iteration_limit_is_continued(monkeypatch):
+    """Held-out figure 267024 (first run at stop 36): siblings 1 and 9 of the 2-marker root
+    0, joints 89.5 mm apart; the tree hung 1 from 9. The true star around 0, started at the
+    false joint 9-1, stopped at its 50 iterations at 1078.4 mm^2, above the current star's
+    532.4 (stopped there too), so the move was never tried. Continued from where they
+    stopped, the two reach 120.5 and 278.0 mm^2 and 1 is re-hung from 0."""
+    import skeleton.relink as relink
+    seed = 267024
+    fig, mo = bench_figure(seed)
+    assert fig.parents[1] == fig.parents[9] == 0
+    noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
+    log = []
+    res = solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1, progress=log.append)
+    assert exact_topology(fig, res), [m for m in log if "re-link" in m]
+    monkeypatch.setattr(relink, "CONTINUE_FITS", 0)          # stopped fits compared, as before
+    assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
+
+
+def test_a_move_that_would_break_another_decisive_move_waits_for_it(monkeypatch):
+    """Held-out figure 240014 (first run at stop 35): 2-marker segments 5, 8 and 9 (9 a
+    child of 5, 5 of 4, 8 of 6, 6 of 5); the tree hung 5 and 9 from 8. Two moves were
+    decisive in one round: 9 from 8 to 5 (triple 5-8-9, 344x) and 5 from 8 to 6 (triple
+    5-8-6, 3747x). The larger, made first, removed the edge 5-8 the other's triple needs,
+    so 9 stayed on 8. Made the other way round, both are made and the tree is exact."""
+    import skeleton.relink as relink
+    seed = 240014
+    fig, mo = bench_figure(seed)
+    assert fig.parents[9] == fig.parents[6] == 5 and fig.parents[8] == 6
+    noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
+    log = []
+    res = solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1, progress=log.append)
+    assert exact_topology(fig, res), [m for m in log if "re-link" in m]
+    monkeypatch.setattr(relink, "ORDER_MOVES", False)       # the most decisive first, as before
+    assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
+
+
 @pytest.mark.parametrize("seed, child, parent", [(144001, 7, 5), (130009, 2, 0)])
 def test_a_pair_raised_through_a_false_anchor_is_still_fitted_as_a_star(seed, child, parent):
     """Held-out figures of benchmarks/bench_skeleton.py (1 mm noise) whose true joint of two
