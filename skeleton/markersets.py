@@ -47,7 +47,11 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    segment's marker into a 5- and a 7-frame gap of a marker, at 3.3 and 2.5 times it
    (246 mm in 5 frames). ``/tmp`` screen of figures 0-1839, one ``merge_fragments`` per
    figure as ``bench_markersets.py`` builds them (stop 36): 1827 -> 1829/1840 (fixed 1026
-   and 1704), none lost; the real recordings' merged groups are identical with and without;
+   and 1704), none lost; the real recordings' merged groups are identical with and without.
+   The steps below keep the gate: none makes an exchange or a move after which a marker
+   crosses a gap that fast (``_paced``; held-out figure 2555, first run at stop 36: step
+   4b moved the last 15 frames of a marker onto another segment's marker, 557 mm in 9
+   frames, 3.7 times the fastest step);
 4. swap repair: the linkage decides each gap on one minimum distance, and two markers of one
    segment that vanish together can come back exchanged (each id then holds fragments of
    both). For every two merged markers that are rigid with respect to each other (sd of
@@ -467,12 +471,12 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         res = _regroup(X, res, nxt)
     if repair_swaps and res.n_markers >= 3:
         res = _with_groups(X, res, _repair_swaps(X, [list(g) for g in res.groups],
-                                                 min_frames, swap_margin))
+                                                 min_frames, swap_margin, max_step=max_step))
         # a marker left as two ids beside a swap (the swap made them overlap) can merge now
         res = merge_again(res, True)
         groups = _join_by_partners(X, [list(g) for g in res.groups], min_frames, first.n_min)
         groups = _two_of_three(X, groups, min_frames, first.n_min)
-        groups, exchanged = _sphere_exchanges(X, groups, min_frames)
+        groups, exchanged = _sphere_exchanges(X, groups, min_frames, max_step=max_step)
         if len(groups) < res.n_markers or exchanged:
             res = _with_groups(X, res, groups)
         if exchanged:
@@ -767,7 +771,7 @@ def _best_by_jumps(X, vis, ga0, gb0, alts, Pq, margin):
 
 def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3.0,
                   rigid_share=0.8, max_rounds=3, turn_margin=np.pi / 3, cross_margin=None,
-                  jump_margin=10.8):
+                  jump_margin=10.8, max_step=np.inf):
     """Step 4: exchange runs of fragments between two mutually rigid markers when that makes
     both more rigid with respect to their segment partners, else when that lowers the
     jumps of their distances to partners rigid to every fragment (``_jumps``, by at least
@@ -775,8 +779,10 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
     direction between them turn less across the fragment changes (by at least
     ``turn_margin`` rad; module docstring); then step 4b between markers of different
     segments (``_repair_cross``, least gain ``cross_margin``, default ``margin``) and step
-    4c (``_move_misfits``)."""
+    4c (``_move_misfits``). No step makes a change of fragment cross its gap faster than
+    ``max_step`` per frame (``_paced``)."""
     vis = ~np.isnan(X[..., 0])
+    span = _spans(vis, groups)
     P = _tracks(X, groups)
     M = len(groups)
     S, s0 = _pair_sd(P, min_frames)
@@ -794,8 +800,10 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                 if not S[a, b] <= rigid_pair * s0 or len(groups[a]) + len(groups[b]) < 3:
                     continue
                 frs = sorted(groups[a] + groups[b], key=first.get)
-                alts = _run_exchanges(frs, groups[a],
-                                      lambda g: vis[:, g].sum(1).max() <= 1)
+                alts = [al for al in _run_exchanges(frs, groups[a],
+                                                    lambda g: vis[:, g].sum(1).max() <= 1)
+                        if _paced(X, span, al[0], max_step)
+                        and _paced(X, span, al[1], max_step)]
                 if not alts:
                     continue
                 # segment partners: rigid to the fragments themselves (whatever their marker)
@@ -834,8 +842,9 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
         if not changed:
             break
     groups = _repair_cross(X, groups, min_frames, s0, margin if cross_margin is None
-                           else cross_margin, jump_margin=jump_margin)
-    return _move_misfits(X, groups, min_frames, s0, jump_margin=jump_margin)
+                           else cross_margin, jump_margin=jump_margin, max_step=max_step)
+    return _move_misfits(X, groups, min_frames, s0, jump_margin=jump_margin,
+                         max_step=max_step)
 
 
 def _run_exchanges(frs, ga, free) -> list:
@@ -873,9 +882,20 @@ def _cross_alternatives(span: dict, ga, gb):
         lambda g: all(span[f][1] < span[h][0] for f, h in zip(g[:-1], g[1:])))
 
 
+def _paced(X, span: dict, g, max_step: float) -> bool:
+    """No change of fragment in marker ``g`` (fragments never overlapping; ``span``:
+    fragment -> (first, last) frame) crosses its gap faster than ``max_step`` (m) per frame:
+    step 3's speed gate, kept by every later step that moves fragments."""
+    if not np.isfinite(max_step) or len(g) < 2:
+        return True
+    fs = sorted(g, key=lambda f: span[f][0])
+    return all(np.linalg.norm(X[span[b][0], b] - X[span[a][1], a])
+               <= max_step * (span[b][0] - span[a][1]) for a, b in zip(fs[:-1], fs[1:]))
+
+
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
                   max_rounds=10, jump_margin=10.8, one_body=1.5, turn_margin=np.pi / 3,
-                  body_veto=True):
+                  body_veto=True, max_step=np.inf):
     """Step 4b (module docstring): runs of fragments exchanged between two markers, judged
     by voting fragments. Every fragment seen in >= ``voter_frames`` frames votes with its
     partners: the markers rigid to it (distance sd <= ``rigid`` x the measured sd ``s0``
@@ -988,6 +1008,8 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                 jumps, turns = None, False
                 for na, nb in alts:
                     if not (checked(na, groups[a], ex) and checked(nb, groups[b], ex)):
+                        continue
+                    if not (_paced(X, span, na, max_step) and _paced(X, span, nb, max_step)):
                         continue
                     ta, tb = _tracks(X, [na, nb]).transpose(1, 0, 2)
                     gain = now - score(na, ta, q) - score(nb, tb, q)
@@ -1106,7 +1128,7 @@ def _fits(costs, bound) -> bool:
 
 
 def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_frames=100,
-                  max_rounds=10, one_body=1.5):
+                  max_rounds=10, one_body=1.5, max_step=np.inf):
     """Step 4c (module docstring): a fragment that fits the other fragments of its marker
     on no judge (``_misfit`` above ``jump_margin`` x s0 squared on every track rigid to it
     and to them: it sits at other distances from all their segment partners; one judge at
@@ -1117,6 +1139,7 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
     move per round (the largest misfit first; a piece no judge sees, first of all), at
     most ``max_rounds``."""
     vis = ~np.isnan(X[..., 0])
+    span = _spans(vis, groups)
     bound = jump_margin * s0 ** 2
     for _ in range(max_rounds):
         P = _tracks(X, groups)
@@ -1137,6 +1160,7 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                 if not (miss.size and miss.min() > bound) and not off:
                     continue
                 to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
+                      and _paced(X, span, groups[b] + [f], max_step)
                       and _fits(_misfit(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
                                         bound, voter_frames), bound)
                       and not _off_body(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
@@ -1405,8 +1429,8 @@ def _direction_spread(ends, frame) -> float:
 
 
 def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_rms=1.5,
-                      min_misfit=2.0, max_rounds=3, direction_margin=DIRECTION_MARGIN
-                      ) -> tuple[list, bool]:
+                      min_misfit=2.0, max_rounds=3, direction_margin=DIRECTION_MARGIN,
+                      max_step=np.inf) -> tuple[list, bool]:
     """Step 8 (module docstring): exchanges between two markers moving as one body judged
     by the sphere each keeps about its joint in the frame of a neighbouring body, then by
     how their direction stays within a joint's range in that frame
@@ -1446,7 +1470,8 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
             kept_ends = P[:, [a, b]]        # the current tracks (kept current by _exchange)
             for na, nb in _cross_alternatives(span, ga, gb):
                 key = frozenset((frozenset(na), frozenset(nb)))
-                if key in done:
+                if key in done or not (_paced(X, span, na, max_step)
+                                       and _paced(X, span, nb, max_step)):
                     continue
                 done.add(key)
                 moved = (set(ga) - set(na)) | (set(gb) - set(nb))

@@ -560,6 +560,17 @@ def test_no_merge_crosses_a_gap_faster_than_any_fragment_moves():
     assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
 
 
+def test_no_later_step_moves_a_piece_faster_than_any_fragment_moves():
+    """Figure 2555 (held out, first run at stop 36): the linkage merged every marker right,
+    then step 4b moved the last 15 frames of a marker onto another segment's marker, 557 mm
+    from its end 9 frames before (3.7 x the fastest frame-to-frame step). The later steps
+    keep step 3's speed gate; without it the figure fails."""
+    fig, mo, X, owner = _bench_figure(2555)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    off = merge_fragments(X, speed_gate=None)
+    assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
+
+
 def test_speed_gate_is_checked():
     X = np.zeros((20, 3, 3))
     for bad in (0, -1.0):
