@@ -122,6 +122,17 @@ def test_a_move_is_checked_with_each_star_started_at_the_others_joints(seed, par
     assert exact_topology(fig, res), [m for m in log if "re-link" in m]
 
 
+def _exact_at_1mm(seed):
+    """Benchmark figure ``seed`` with 1 mm noise (as bench_skeleton.py): (figure, noisy
+    markers, rate); asserts the solver's topology is exact on it."""
+    fig, mo = bench_figure(seed)
+    noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
+    log = []
+    res = solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1, progress=log.append)
+    assert exact_topology(fig, res), [m for m in log if "re-link" in m]
+    return fig, noisy, mo.rate_hz
+
+
 def test_the_two_stars_are_refitted_from_each_other_until_neither_improves(monkeypatch):
     """Held-out figure 235004 (first run at stop 34): 2-marker siblings 3 and 5 of 2-marker
     segment 1, joints 9.2 mm apart. The true star around 1 stopped at 838.9 mm^2 from the
@@ -132,18 +143,14 @@ def test_the_two_stars_are_refitted_from_each_other_until_neither_improves(monke
     repeat while either star improves (at most ``REFIT_ROUNDS``)."""
     import skeleton.relink as relink
     seed = 235004
-    fig, mo = bench_figure(seed)
+    fig, noisy, rate = _exact_at_1mm(seed)
     assert fig.parents[3] == fig.parents[5] == 1
-    noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
-    log = []
-    res = solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1, progress=log.append)
-    assert exact_topology(fig, res), [m for m in log if "re-link" in m]
     # since stop 36 a star stopped at its iteration limit is continued (CONTINUE_FITS),
     # which also takes the true star down here: the rounds alone must do it
     monkeypatch.setattr(relink, "CONTINUE_FITS", 0)
-    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
+    assert exact_topology(fig, solve_skeleton(noisy, rate, rng=0, workers=1))
     monkeypatch.setattr(relink, "REFIT_ROUNDS", 1)                  # one round, as before
-    assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
+    assert not exact_topology(fig, solve_skeleton(noisy, rate, rng=0, workers=1))
 
 
 def test_a_star_stopped_at_its_iteration_limit_is_continued(monkeypatch):
@@ -154,14 +161,10 @@ def test_a_star_stopped_at_its_iteration_limit_is_continued(monkeypatch):
     stopped, the two reach 120.5 and 278.0 mm^2 and 1 is re-hung from 0."""
     import skeleton.relink as relink
     seed = 267024
-    fig, mo = bench_figure(seed)
+    fig, noisy, rate = _exact_at_1mm(seed)
     assert fig.parents[1] == fig.parents[9] == 0
-    noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
-    log = []
-    res = solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1, progress=log.append)
-    assert exact_topology(fig, res), [m for m in log if "re-link" in m]
     monkeypatch.setattr(relink, "CONTINUE_FITS", 0)          # stopped fits compared, as before
-    assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
+    assert not exact_topology(fig, solve_skeleton(noisy, rate, rng=0, workers=1))
 
 
 def test_a_move_that_would_break_another_decisive_move_waits_for_it(monkeypatch):
@@ -172,14 +175,10 @@ def test_a_move_that_would_break_another_decisive_move_waits_for_it(monkeypatch)
     so 9 stayed on 8. Made the other way round, both are made and the tree is exact."""
     import skeleton.relink as relink
     seed = 240014
-    fig, mo = bench_figure(seed)
+    fig, noisy, rate = _exact_at_1mm(seed)
     assert fig.parents[9] == fig.parents[6] == 5 and fig.parents[8] == 6
-    noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
-    log = []
-    res = solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1, progress=log.append)
-    assert exact_topology(fig, res), [m for m in log if "re-link" in m]
     monkeypatch.setattr(relink, "ORDER_MOVES", False)       # the most decisive first, as before
-    assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
+    assert not exact_topology(fig, solve_skeleton(noisy, rate, rng=0, workers=1))
 
 
 @pytest.mark.parametrize("seed, child, parent", [(144001, 7, 5), (130009, 2, 0)])
@@ -221,6 +220,6 @@ def test_soft_tissue_does_not_move_siblings_onto_each_other(seed, monkeypatch):
     fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
     mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)), soft_tissue_m=2e-3)
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
-    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
+    assert exact_topology(fig, solve_skeleton(noisy, rate, rng=0, workers=1))
     monkeypatch.setattr(star_fit, "TAU_REF", np.inf)                    # the premise
-    assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
+    assert not exact_topology(fig, solve_skeleton(noisy, rate, rng=0, workers=1))
