@@ -220,6 +220,6 @@ def test_soft_tissue_does_not_move_siblings_onto_each_other(seed, monkeypatch):
     fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
     mo = animate(fig, 600, rng=g, rom_deg=float(g.uniform(45, 90)), soft_tissue_m=2e-3)
     noisy = mo.markers + np.random.default_rng(seed % 1000).normal(0, 1e-3, mo.markers.shape)
-    assert exact_topology(fig, solve_skeleton(noisy, rate, rng=0, workers=1))
+    assert exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
     monkeypatch.setattr(star_fit, "TAU_REF", np.inf)                    # the premise
-    assert not exact_topology(fig, solve_skeleton(noisy, rate, rng=0, workers=1))
+    assert not exact_topology(fig, solve_skeleton(noisy, mo.rate_hz, rng=0, workers=1))
