@@ -1,7 +1,10 @@
 """Skeleton solver on random simulated figures: topology success, joint-centre error, time.
 
 Usage: python benchmarks/bench_skeleton.py [n_figures=50] [n_frames=600] [seed_bases=1000]
-[noise_mm=0,1] [soft_tissue_mm=0]
+[noise_mm=0,1] [soft_tissue_mm=0] [gaps=0]
+(gaps=1: every marker occluded 1-3 times for 3-40 frames, NaN with its id kept - what a
+tracker that re-identifies markers, or exact marker sets, delivers; tests/skeleton/_figures.py
+``occlude``, seeded per figure like the noise)
 (soft_tissue_mm: hw_sim's soft-tissue artefacts, markers sliding +-that much per axis on their
 bones, on top of the noise; the figures and motions are otherwise the same, and the truth -
 joints and tree - does not move with it)
@@ -53,7 +56,9 @@ then 187015 showed 39815fa's anchor rule; 210000-219000 first run on 39815fa (49
 run (see the README), and 235004 showed 9c1f0c1's re-fit rounds; at stop 36, 240014 showed
 the re-link's move order (relink.ORDER_MOVES), 260000-269000 were first run on it (492/500),
 and 267024 then showed the continued star fits (relink.CONTINUE_FITS); 270000-279000 first
-run on that code; 280000+ untouched)
+run on that code, 280000-285000 on its final code (ffa653d); at stop 37, 286000-289000 first
+run on ffa653d, and the low-pass trim (pipeline.TRIM_PERIODS) chosen on occluded figures
+(gaps=1) of 1000-2000 and the marker-set figures; 290000+ untouched)
 Per noise level (none, 1 mm) prints each figure whose topology is not exact (its extra edges,
 with marker counts and, for siblings, how far apart their joints are), then: (a) topology
 exactly right (target >= 49/50);
@@ -91,7 +96,8 @@ from skeleton.junctions import STAR_MARGIN  # noqa: E402
 from skeleton.rigid import kabsch_svd  # noqa: E402
 from skeleton.pipeline import solve_skeleton  # noqa: E402
 from tests.skeleton._figures import (largest_case, min_sibling_joint_distance,  # noqa: E402
-                                     segment_map, solver_joint_errors, topology_equivalent)
+                                     occlude, segment_map, solver_joint_errors,
+                                     topology_equivalent)
 
 THESIS_LARGEST_S = 70.0
 CLOSE_SIBLINGS_M = 0.010
@@ -99,8 +105,10 @@ EQUIV_TOL_FACTOR = 3.0
 FAR_JOINT_M = 0.010   # joints reported as far off (count)
 
 
-def run(fig, mo, noise_m, seed, workers=None, star_margin=STAR_MARGIN):
+def run(fig, mo, noise_m, seed, workers=None, star_margin=STAR_MARGIN, gaps=False):
     tr = mo.markers + np.random.default_rng(seed).normal(0, noise_m, mo.markers.shape)
+    if gaps:
+        tr = occlude(tr, seed)
     t0 = time.perf_counter()
     res = solve_skeleton(tr, mo.rate_hz, rng=0, workers=workers, star_margin=star_margin)
     dt = time.perf_counter() - t0
@@ -138,11 +146,14 @@ def failure(fig, res) -> str:
     return "; ".join(out)
 
 
-def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1", soft_mm="0"):
+def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1", soft_mm="0", gaps="0"):
     noises = [float(n) * 1e-3 for n in str(noises_mm).split(",")]
     soft = float(soft_mm) * 1e-3
     if not soft >= 0:
         raise SystemExit(f"soft_tissue_mm={soft_mm!r}, expected >= 0")
+    if str(gaps) not in ("0", "1"):
+        raise SystemExit(f"gaps={gaps!r}, expected 0 or 1")
+    gaps = str(gaps) == "1"
     for base, noise in [(int(b), n) for b in str(bases).split(",") for n in noises
                         ] if n_fig > 0 else ():
         ok, errs, times, kept, close = 0, [], [], [], 0
@@ -151,7 +162,7 @@ def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1", soft_mm="0"):
             fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=g)
             mo = animate(fig, n_frames, rng=g, rom_deg=float(g.uniform(45, 90)),
                          soft_tissue_m=soft)
-            good, e, dt, res = run(fig, mo, noise, k)
+            good, e, dt, res = run(fig, mo, noise, k, gaps=gaps)
             if not good:
                 print(f"  seed {base + k}, noise {noise * 1e3:.0f} mm: {failure(fig, res)}",
                       flush=True)
@@ -165,6 +176,7 @@ def main(n_fig=50, n_frames=600, bases="1000", noises_mm="0,1", soft_mm="0"):
         equiv = sum(topology_equivalent(f, m, r, tol) for f, m, r in kept)
         print(f"seeds {base}+, noise {noise * 1e3:.0f} mm"
               + (f", soft tissue {soft * 1e3:g} mm" if soft else "")
+              + (", occluded (1-3 gaps of 3-40 frames per marker)" if gaps else "")
               + f": (a) topology exact {ok}/{n_fig}; "
               f"(b) kinematically equivalent {equiv}/{n_fig} (tolerance "
               f"{EQUIV_TOL_FACTOR:.0f} x median joint error = {tol * 1e3:.2f} mm); "
@@ -262,4 +274,4 @@ def _cpu() -> float:
 
 
 if __name__ == "__main__":
-    main(*(int(a) if i < 2 else a for i, a in enumerate(sys.argv[1:6])))
+    main(*(int(a) if i < 2 else a for i, a in enumerate(sys.argv[1:7])))

@@ -314,7 +314,12 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
 
     def relink(edges, grp, tol, depth):
         inner = [e for e in edges if e <= grp]
-        ball = [e for e in inner if axes.get(e) is None] or inner   # a hinge's centre is
+        # the centres are the input tree's joints: an edge an earlier group's star added
+        # has none (a split group's second half can hold one of the first half's)
+        known = [e for e in inner if e in centres]
+        if not known:
+            return edges
+        ball = [e for e in known if axes.get(e) is None] or known   # a hinge's centre is
         c = _nan_mean(np.stack([centres[e] for e in ball]))          # arbitrary on its axis
         apart = [np.linalg.norm(centres[e] - centres[f], axis=1)
                  for i, e in enumerate(ball) for f in ball[i + 1:]]
@@ -332,6 +337,7 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
             if all(ok(n, m) for m in grp) and choose(grp | {n}, c) == n:
                 hub, grp = n, grp | {n}
                 inner = [e for e in edges if e <= grp]
+                known = [e for e in inner if e in centres]
                 break
         hub = choose(grp, c) if hub is None else hub
         if hub is None:
@@ -339,13 +345,13 @@ def resolve_junctions(traj: np.ndarray, members, edges, centres: dict, cost: np.
             # within ``tol`` of the next, not of each other). Its tighter groups are
             # resolved instead.
             if depth < SPLIT_DEPTH:
-                for g in junction_groups(sorted(tuple(sorted(e)) for e in inner), centres,
+                for g in junction_groups(sorted(tuple(sorted(e)) for e in known), centres,
                                          tol / 2, axes, traj, members, floor_m):
                     edges = relink(edges, g, tol / 2, depth + 1)
             return edges
         if record is not None:
             record.append(Junction(tuple(sorted(int(m) for m in grp)), int(hub),
-                                   joint_spread(inner, centres, axes)))
+                                   joint_spread(known, centres, axes)))
         return (edges - set(inner)) | _star(grp, hub, keep, cost)
 
     for grp in junction_groups(sorted(tuple(sorted(e)) for e in edges), centres, tol_m,

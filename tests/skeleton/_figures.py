@@ -80,19 +80,31 @@ def solver_joint_errors(fig, motion, res, segmap) -> np.ndarray:
     return np.array(errs)
 
 
+def occlude(markers, rng, n_gaps=(1, 4), gap_frames=(3, 40)):
+    """A copy of (T, M, 3) ``markers`` with every marker hidden (NaN) at 1-3 random
+    occlusions of 3-40 frames (``n_gaps``, ``gap_frames``: numpy ``integers`` ranges), ids
+    kept: what a tracker that re-identifies markers (or exact marker sets) delivers.
+    ``rng``: a seed or a Generator (``fragment`` draws its gaps through it first)."""
+    g = np.random.default_rng(rng)
+    out = np.array(markers, np.float64)
+    T, M, _ = out.shape
+    for m in range(M):
+        for _ in range(g.integers(*n_gaps)):
+            s = g.integers(0, T)
+            out[s:s + g.integers(*gap_frames), m] = np.nan
+    return out
+
+
 def fragment(markers, rng, n_gaps=(1, 4), gap_frames=(3, 40), n_ghosts=5):
     """Cut every marker trajectory at random occlusions into fragments with new ids (as a
     tracker does), add short ghost fragments, shuffle. Returns (T, F, 3) and owner (F,)
     (the physical marker of each fragment, -1 for a ghost)."""
     g = np.random.default_rng(rng)
     T, M, _ = markers.shape
+    seen = ~np.isnan(occlude(markers, g, n_gaps, gap_frames)[..., 0])
     cols, owner = [], []
     for m in range(M):
-        alive = np.ones(T, bool)
-        for _ in range(g.integers(*n_gaps)):
-            s = g.integers(0, T)
-            alive[s:s + g.integers(*gap_frames)] = False
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], alive.astype(int), [0]])))
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], seen[:, m].astype(int), [0]])))
         for a, b in zip(edges[::2], edges[1::2]):
             c = np.full((T, 3), np.nan)
             c[a:b] = markers[a:b, m]

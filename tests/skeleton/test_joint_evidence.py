@@ -190,7 +190,7 @@ def _completed_costs(smooth, m, truth, false_pair, min_q):
     return before, cost, floor, completed
 
 
-def test_chained_anchors_raise_a_false_pair_below_a_two_marker_parent():
+def test_chained_anchors_raise_a_false_pair_below_a_two_marker_parent(old_trim):
     """The benchmark's largest case (bench_skeleton.py: 31 markers, 13 segments, 1500
     frames, 1 mm noise). Segments 4 and 7 (two markers each, hinges 55.7 mm apart) hang from
     3 (two markers), which hangs from 2 (two markers), which hangs from 0. The false pair

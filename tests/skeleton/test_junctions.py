@@ -364,7 +364,7 @@ def test_hub_chosen_by_the_star_likelihood_where_decisive():
 
 
 @pytest.mark.parametrize("seed", [8008, 152003])
-def test_star_fits_below_the_margin_weigh_in_the_hub_choice(seed, monkeypatch):
+def test_star_fits_below_the_margin_weigh_in_the_hub_choice(seed, monkeypatch, old_trim):
     """Figures of benchmarks/bench_skeleton.py (1 mm noise) whose junction's prior scored
     the true and a wrong hub within 0.05 and 0.008 of each other (2.025 against 1.975;
     2.004 against 1.996) and chose the wrong one, while the true hub's star fitted 107x and
@@ -393,3 +393,24 @@ def test_junction_point_mean_skips_unseen_frames_without_a_warning():
     assert np.isnan(got[:5]).all() and not np.isnan(got[5:]).any()
     np.testing.assert_allclose(got[10:20], c[1:, 10:20].mean(0), rtol=0, atol=1e-15)
     np.testing.assert_allclose(got[20:], c[:, 20:].mean(0), rtol=0, atol=1e-15)
+
+
+def test_a_split_group_may_hold_an_edge_its_first_half_added(old_trim):
+    """Figure 47 of the marker-set figures (benchmarks/bench_markersets.py: 400 frames, 60
+    deg, 1 mm noise, 1-3 occlusions of 3-40 frames per marker, ids kept), solved with the old
+    1.5-period trim of the low-pass: a junction group that chained two junctions was split,
+    and its second half held an edge the first half's star had just added. That edge has
+    no joint centre (the centres are the input tree's), and resolve_junctions raised
+    KeyError. It now works on the edges it has centres for."""
+    from skeleton import pipeline
+    from tests.skeleton._figures import occlude
+
+    k = 47
+    g = np.random.default_rng(1000 + k)
+    fig = random_tree(int(g.integers(5, 21)), (2, 4), rng=1000 + k)
+    mo = animate(fig, 400, rng=1000 + k, rom_deg=60.0)
+    tr = occlude(mo.markers + g.normal(0, 1e-3, mo.markers.shape), k)
+    res = pipeline.solve_skeleton(tr, mo.rate_hz, rng=0, workers=1)
+    S = res.n_segments
+    assert S == fig.n_segments and (res.parents < 0).sum() == 1
+    tree_from_edges(S, [(s, int(res.parents[s])) for s in range(S) if res.parents[s] >= 0])

@@ -87,7 +87,7 @@ def test_implausible_pairs_are_not_fitted():
 
 
 @pytest.mark.parametrize("seed, parent, a, b", [(4043, 1, 2, 4), (101022, 0, 1, 3)])
-def test_siblings_far_apart_hung_from_each_other_by_the_tree(seed, parent, a, b):
+def test_siblings_far_apart_hung_from_each_other_by_the_tree(seed, parent, a, b, old_trim):
     """Seeds of benchmarks/bench_skeleton.py (1 mm noise), seen as failures:
     - 4043 (stop 22): siblings 2 (2 markers) and 4 (3 markers) hang from 1 with joints 116 mm
       apart; the tree hung 2 from 4 (as it does without the star fits, star_margin = inf).
@@ -153,7 +153,7 @@ def test_the_two_stars_are_refitted_from_each_other_until_neither_improves(monke
     assert not exact_topology(fig, solve_skeleton(noisy, rate, rng=0, workers=1))
 
 
-def test_a_star_stopped_at_its_iteration_limit_is_continued(monkeypatch):
+def test_a_star_stopped_at_its_iteration_limit_is_continued(monkeypatch, old_trim):
     """Held-out figure 267024 (first run at stop 36): siblings 1 and 9 of the 2-marker root
     0, joints 89.5 mm apart; the tree hung 1 from 9. The true star around 0, started at the
     false joint 9-1, stopped at its 50 iterations at 1078.4 mm^2, above the current star's
@@ -182,7 +182,7 @@ def test_a_move_that_would_break_another_decisive_move_waits_for_it(monkeypatch)
 
 
 @pytest.mark.parametrize("seed, child, parent", [(144001, 7, 5), (130009, 2, 0)])
-def test_a_pair_raised_through_a_false_anchor_is_still_fitted_as_a_star(seed, child, parent):
+def test_a_pair_raised_through_a_false_anchor_is_still_fitted_as_a_star(seed, child, parent, old_trim):
     """Held-out figures of benchmarks/bench_skeleton.py (1 mm noise) whose true joint of two
     2-marker segments was raised by a completed frame: 144001's 7 (child of 5) was anchored
     on its grandparent 1, a false joint fitting at 0.63x the floor, and in that frame the

@@ -89,7 +89,7 @@ def test_pipeline_segments_low_passed_data(seed):
 
 
 @pytest.mark.parametrize("noise_m", [NOISE_M, 2e-3])
-def test_two_marker_segments_spread_over_two_clusters_are_rebuilt(noise_m):
+def test_two_marker_segments_spread_over_two_clusters_are_rebuilt(noise_m, old_trim):
     """Seed 48012 (low-passed, as the pipeline segments): the spectral step puts one marker
     of a 2-marker segment with each of two other 2-marker segments ({a1, b1, b2},
     {a2, c1, c2}, K = 19 of 20). The rigidity split must split the single markers off
@@ -234,7 +234,7 @@ if __name__ == "__main__":
 
 
 @pytest.mark.parametrize("seed, soft_m", [(2, 2e-3), (6, 3e-3), (29, 3e-3)])
-def test_count_rises_until_segments_are_rigid_under_soft_tissue(seed, soft_m):
+def test_count_rises_until_segments_are_rigid_under_soft_tissue(seed, soft_m, old_trim):
     """Skin markers slide on their bones (hw_sim's ``soft_tissue_m``: 2-3 mm per axis) on
     top of 1 mm noise, low-passed as the solver does: the eigengap's count falls one or two
     short, and the split and fold-back of steps 3-5 leave a cluster that is not rigid. Step
