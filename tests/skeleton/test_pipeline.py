@@ -141,7 +141,7 @@ def test_bad_worker_count_is_refused(workers):
         solve_skeleton(np.zeros((10, 4, 3)), 100.0, workers=workers)
 
 
-def test_world_placement_that_finds_another_solution_is_not_taken(monkeypatch):
+def test_world_placement_that_finds_another_solution_is_not_taken(monkeypatch, old_trim):
     """Held-out seed 136015, 1 mm: the joint of a 3-marker child with the 2-marker root is
     fitted in the child's frame (3.7 mm off the truth), which carries it with 8.8x the marker
     noise, so the world-frame fit was to place it (skeleton.pipeline._world_centre) - and
@@ -162,17 +162,20 @@ def test_world_placement_that_finds_another_solution_is_not_taken(monkeypatch):
     assert error_m() > 0.1
 
 
-@pytest.mark.parametrize("seed", [1000, 1002, 1003, 1004])
+@pytest.mark.parametrize("seed", [1000, 1002, 1003, 1004, 2004, 2021])
 def test_occluded_markers_keep_the_topology(seed):
     """Every marker hidden 1-3 times for 3-40 frames, ids kept (``bench_skeleton.py 50 600
     1000 1 0 1``'s figures). The topology costs run on low-passed runs whose ends the filter
     cannot be trusted on; cutting 1.5 periods of the cut-off (30 frames) around every gap left
     many-marker pairs few common frames, and these four figures got wrong trees (exact on
-    26 of figures 1000-1049, 49 with 0.25 periods: ``pipeline.TRIM_PERIODS``)."""
+    26 of figures 1000-1049, 49 with 0.25 periods: ``pipeline.TRIM_PERIODS``). 2004 and 2021
+    (siblings 1.5 and 22.8 mm apart) needed the joint and star fits on the trimmed low-pass
+    too (``pipeline.FIT_TRIM``): the filter's start-up error at each gap, untrimmed, made a
+    wrong star fit 250x the residual variance better in 2021."""
     from tests.skeleton._figures import occlude
 
     fig, mo = bench_figure(seed)
-    k = seed - 1000
+    k = seed % 1000
     tr = occlude(mo.markers + np.random.default_rng(k).normal(0, NOISE_M, mo.markers.shape), k)
     assert 0.03 < np.isnan(tr[..., 0]).mean() < 0.2
     res = solve_skeleton(tr, mo.rate_hz, rng=0, workers=1)

@@ -133,7 +133,7 @@ def _exact_at_1mm(seed):
     return fig, noisy, mo.rate_hz
 
 
-def test_the_two_stars_are_refitted_from_each_other_until_neither_improves(monkeypatch):
+def test_the_two_stars_are_refitted_from_each_other_until_neither_improves(monkeypatch, old_trim):
     """Held-out figure 235004 (first run at stop 34): 2-marker siblings 3 and 5 of 2-marker
     segment 1, joints 9.2 mm apart. The true star around 1 stopped at 838.9 mm^2 from the
     tree's joints; started at the wrong star's joints it reached 167.8 mm^2 but hit its 50
