@@ -882,15 +882,23 @@ def _cross_alternatives(span: dict, ga, gb):
         lambda g: all(span[f][1] < span[h][0] for f, h in zip(g[:-1], g[1:])))
 
 
+def _too_fast(runs, max_step: float) -> bool:
+    """Step 3's speed gate. ``runs``: (first frame, last frame, first position, last
+    position, source) of one marker's runs, in time order and never overlapping: whether a
+    run following one of another source starts farther from where that one ended than
+    ``max_step`` (m) per frame of the gap between them."""
+    return any(a[4] != b[4] and np.linalg.norm(b[2] - a[3]) > max_step * (b[0] - a[1])
+               for a, b in zip(runs[:-1], runs[1:]))
+
+
 def _paced(X, span: dict, g, max_step: float) -> bool:
     """No change of fragment in marker ``g`` (fragments never overlapping; ``span``:
     fragment -> (first, last) frame) crosses its gap faster than ``max_step`` (m) per frame:
-    step 3's speed gate, kept by every later step that moves fragments."""
+    step 3's speed gate (``_too_fast``), kept by every later step that moves fragments."""
     if not np.isfinite(max_step) or len(g) < 2:
         return True
-    fs = sorted(g, key=lambda f: span[f][0])
-    return all(np.linalg.norm(X[span[b][0], b] - X[span[a][1], a])
-               <= max_step * (span[b][0] - span[a][1]) for a, b in zip(fs[:-1], fs[1:]))
+    return not _too_fast([(span[f][0], span[f][1], X[span[f][0], f], X[span[f][1], f], f)
+                          for f in sorted(g, key=lambda f: span[f][0])], max_step)
 
 
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
@@ -1322,11 +1330,10 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
                for cut in [np.flatnonzero(np.diff(f) > 1) + 1]}
 
     def too_fast(ci, cj) -> bool:
-        """the merged marker would jump a gap faster than max_step per frame"""
-        rs = sorted([(r, 0) for r in runs_of[ci]] + [(r, 1) for r in runs_of[cj]],
-                    key=lambda q: q[0][0])
-        return any(s0 != s1 and np.linalg.norm(r1[2] - r0[3]) > max_step * (r1[0] - r0[1])
-                   for (r0, s0), (r1, s1) in zip(rs[:-1], rs[1:]))
+        """the merged marker would jump a gap between the two clusters faster than
+        max_step per frame"""
+        runs = [r + (0,) for r in runs_of[ci]] + [r + (1,) for r in runs_of[cj]]
+        return _too_fast(sorted(runs, key=lambda r: r[0]), max_step)
 
     for e in cand[np.argsort(key, kind="stable")]:
         if len(members) <= lower:

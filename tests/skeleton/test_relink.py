@@ -182,7 +182,8 @@ def test_a_move_that_would_break_another_decisive_move_waits_for_it(monkeypatch)
 
 
 @pytest.mark.parametrize("seed, child, parent", [(144001, 7, 5), (130009, 2, 0)])
-def test_a_pair_raised_through_a_false_anchor_is_still_fitted_as_a_star(seed, child, parent, old_trim):
+def test_a_pair_raised_through_a_false_anchor_is_still_fitted_as_a_star(seed, child, parent,
+                                                                         old_trim):
     """Held-out figures of benchmarks/bench_skeleton.py (1 mm noise) whose true joint of two
     2-marker segments was raised by a completed frame: 144001's 7 (child of 5) was anchored
     on its grandparent 1, a false joint fitting at 0.63x the floor, and in that frame the
