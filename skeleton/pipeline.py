@@ -647,8 +647,9 @@ def solve_skeleton(trajectories, rate_hz: float, n_segments: int | None = None, 
     sure = hinge & (cost <= HINGE_SURE * floor)
     top = skeleton_tree(cost, first=sure)
     T = traj.shape[0]
-    # joint centres from the low-passed data too (trimmed, FIT_TRIM) when it is noisy
-    fit_data = lowpass(traj, rate_hz, trim=FIT_TRIM) if noisy else traj
+    # joint centres from the low-passed data too (trimmed, FIT_TRIM: the costs' own
+    # ``smooth``) when it is noisy
+    fit_data = smooth if FIT_TRIM else lowpass(traj, rate_hz) if noisy else traj
     fits: dict[tuple, JointFit] = {}
     memo: dict = {}     # _completed_fits' fits, shared by tree_joints' two calls
 
