@@ -475,6 +475,37 @@ def test_cross_exchange_may_move_a_piece_already_off_its_body():
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
+def test_a_marker_of_short_fragments_is_judged_by_its_kept_track(monkeypatch):
+    """Figure 569 (failing since it was first run): markers 15 (a 4-marker segment) and 18
+    (a 2-marker segment) both come back at frame 326, and the linkage gave each the
+    other's last 74 frames. Step 4b found the exchange but could not make it: nothing is
+    moved into a marker where no partner of the voters it keeps is seen with the piece,
+    and marker 18's fragments (69, 78, 87 frames) are all shorter than a voter's 100. The
+    track they make together has a partner, its segment partner, rigid to the piece at
+    1.0 x the measured sd; it judges now (``KEPT_TRACK_VOTES``)."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(569)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.setattr(ms, "KEPT_TRACK_VOTES", False)          # the failure guarded against
+    off = merge_fragments(X)
+    assert [15, 18] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+
+
+def test_a_voter_moved_in_is_not_judged_by_the_kept_track(monkeypatch):
+    """Figure 313: with the kept track judging a voter moved in too
+    (``KEPT_TRACK_JUDGES_VOTERS``), step 4b first moved a 141-frame voter of marker 39 onto
+    the marker of its two short fragments (gain 4.64, against 4.06 for the right exchange,
+    which takes a 27-frame piece of marker 35 out of marker 39's id), and left marker 35's
+    piece with marker 39's end piece, an id no voter judges. A voter's own partners score
+    it on a track it mostly makes, so the kept track judges only shorter pieces."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(313)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.setattr(ms, "KEPT_TRACK_JUDGES_VOTERS", True)   # the failure guarded against
+    off = merge_fragments(X)
+    assert [35, 39] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+
+
 @pytest.mark.parametrize("k, pair", [(221, [21, 22]), (718, [41, 42])])
 def test_two_markers_hidden_together_are_told_apart_by_their_joint_spheres(monkeypatch, k,
                                                                            pair):
