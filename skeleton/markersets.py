@@ -109,8 +109,8 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    short fragments first, 4.64 against 4.06 for the right exchange, and a mixed pair of
    short pieces was left that no voter judges. ``/tmp`` screen of figures 0-1839, as
    bench_markersets.py builds them (stop 38): 1829 -> 1830/1840 (fixed 569, none lost;
-   without the exception 1829, 313 lost); held out, first run 2600-2839: 238/240, its two
-   failures (2710, 2738) the same without the rule; real recordings' merged groups
+   without the exception 1829, 313 lost); held out, first run 2600-2839: 238/240 with and
+   without the rule, the same two failures (2710, 2738); real recordings' merged groups
    identical with and without), nor one
    that raises step 4's jump cost of the two markers by ``jump_margin`` times the measured
    sd squared (a voter's partners may be rigid over its frames only: in figure 372 they
