@@ -85,7 +85,14 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    it, i.e. 180 deg minus twice the rotation more: on figures 0, 2, .., 38 the direction
    of two markers of one segment turned over 40 frames (the longest simulated gap) by at
    most 79 deg, 99 % below 56 deg, so a wrong assignment turns >= 68 deg more across 99 %
-   of such gaps (the margin was set from this, before running the benchmark);
+   of such gaps (the margin was set from this, before running the benchmark). Partners
+   that decide nothing leave a pair moving as one body (sd <= 1.5 x s0) to its direction
+   too (``TURN_FALLBACK``; figure 896: the two markers of a 2-marker segment swapped at
+   their start pieces, with one partner, a marker of the parent 101 mm from their joint
+   and nearly in line with the segment, whose distances to them drift by 3.0-3.2 x s0 as
+   the joint turns: the right exchange gained 0.51 in sd cost, under the margin, and the
+   jumps dropped it as drifting, while the direction turns 35 deg across the gap when
+   right and 156 deg as merged);
 4b. exchange by voting fragments (``_repair_cross``): the linkage can also give two markers
    of different segments each other's piece (both vanish at about the same time and each
    continuation lies nearer the wrong one), and step 4 misses swaps whose partners it
@@ -93,7 +100,11 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    markers rigid to it (distance sd <= 3 times the measured sd over its frames) - its
    segment, whatever else its track holds. A track scores, summed over the partners of each
    voter it holds, log(1 + sd / measured sd) of its distance to each. For a marker whose
-   track is not rigid to a partner of one of its voters, and every other marker, each
+   track is not rigid to a partner of one of its voters (or that holds a piece off its
+   other fragments on every judge, step 4c's misfit, ``MISFITS_ARE_BAD``: over 400 frames
+   a short piece barely moves a track's sd; figure 1464, two sibling segments' markers
+   holding each other's end pieces of 65 and 49 frames, found by a jump of 1.34 x the
+   bound, the exchange then gaining 2.98), and every other marker, each
    overlap-free exchange of a run of their fragments is scored (the pair's own tracks left
    out of the partners, so each alternative sums the same terms) and the best is made when
    it lowers the sum by ``swap_margin`` (1), one exchange per round. An exchange may not put
@@ -139,7 +150,18 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    marker whose one-body partners there were 5.2-15.2 x s0 off rigid to it, so no judge
    saw it - moves to the one marker, sharing no frame with it, that it fits (within that
    bound on every judge, and off no one-body partner), one move per round, the largest
-   misfit first;
+   misfit first. A piece that no track judges on its own marker (no judge, and off no
+   one-body track) moves, after the misfits, to the one marker on which judges at its
+   distance from that marker's fragments see it for >= ``UNJUDGED_EVIDENCE`` (20) frames
+   in all, twice what one judge needs (``UNJUDGED_MOVES``; figure 556: marker 8's last 10
+   frames, no partner of it seen, sat on a marker of the next segment at the distance of
+   one marker there, rigid to them over those 10 frames; there a judge rigid
+   for the piece's few frames only may disagree: figure 3019, marker 1's first 18 frames
+   on a marker of another segment, its two segment partners at the same distance from
+   them as from the rest of marker 1 (0.01 and 0.58 x the bound) and a marker of the next
+   segment, rigid to both by the sd bound, 3.55 x the bound off; figures 403 and 3016,
+   the first pieces of a marker given to another segment's marker, whose partners are not
+   rigid to them);
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
@@ -165,7 +187,11 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    is rigid (figures 524, 719: 1.0 s0) and a wrong one flips the direction at a change
    (524: right 27.5 deg, other 176.4; 719: 92.3 and 228.7); the rigidity keeps apart
    markers of two segments rigid where seen together (figure 403: m9 and m19 at 3.0 s0,
-   with a piece of m9's partner m8: both splits 9.7 s0).
+   with a piece of m9's partner m8: both splits 9.7 s0). Two markers may also be left as
+   four ids, each pair seen together and never in one frame with the other pair (figure
+   3024: a 2-marker segment whose markers are lost before frame 79, one over frames 29-56,
+   the other over 57-78); such pairs of pairs are judged as three ids are
+   (``TWO_OF_FOUR``; 3024's right pairing turns 74 deg across the change, the other 155).
 8. joint spheres (``_sphere_exchanges``): a marker turns about its segment's joint with a
    neighbouring segment, so in that segment's frame it stays on a sphere about the joint.
    Two markers moving as one body (sd <= 1.5 x s0 over >= 100 frames) that no earlier step
@@ -216,7 +242,13 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    at stop 34, on the code before) 235 -> 237 of 240; none lost. Held out, first run
    1720-1839 with and without it: 117 of 120 both, identical per figure (1749, 1750:
    pieces of two segments; 1833: two ids for one marker). Real recordings: merged groups
-   identical with and without it (all 9 files of ../shared/data/c3d).
+   identical with and without it (all 9 files of ../shared/data/c3d). A body judges the
+   direction only where it sees the moved pieces for >= ``DIRECTION_MOVED_FRAMES`` (5)
+   frames (``DIRECTION_SEES_MOVED``): a body whose frames miss them finds both
+   assignments alike and, holding the direction tightest, hid every other body's verdict
+   (figure 2710: two start pieces of a 2-marker segment's markers exchanged, 32 and 46
+   frames; a body seeing none of those frames held the direction at 0.985 both ways,
+   eight others rose by 0.07-0.29 with the exchange).
 9. step 8 can leave a marker as two ids, as the swap repair can (step 5): in figure 1833
    (held out, first run at stop 34) the linkage merged marker 17 right, the swap repair
    moved its first fragment out and a piece of marker 15 (same segment) in, and step 8
@@ -345,6 +377,8 @@ DIRECTION_MARGIN = 0.1  # step 8: the least gain in the mean resultant length of
                         # exchange (module docstring); 1 mm noise on markers >= 20 mm apart
                         # costs ~0.005
 DIRECTION_FRAMES = 50   # ... over at least this many frames both are seen with the body
+DIRECTION_SEES_MOVED = True   # step 8: a body judges the direction only where it sees the
+DIRECTION_MOVED_FRAMES = 5    # ... moved pieces for at least this many frames
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -577,13 +611,16 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
                 for c in np.flatnonzero(ok[a] | ok[b]):
                     if c != a and c != b and not (bad[a, c] or bad[b, c]):
                         triples.append(tuple(sorted((a, int(b), int(c)))))
+        sets = sorted(set(triples))
+        if TWO_OF_FOUR:
+            sets += _pairs_of_pairs(vis, groups, ok, bad)
         found = None
-        for a, b, c in sorted(set(triples)):
-            frs = groups[a] + groups[b] + groups[c]
+        for ids in sets:
+            frs = [f for m in ids for f in groups[m]]
             splits = _colourings(X, vis, frs)
             if len(splits) < 2:
                 continue
-            seen, rigid = _partner_frames(X, vis, P, frs, np.setdiff1d(np.arange(M), [a, b, c]),
+            seen, rigid = _partner_frames(X, vis, P, frs, np.setdiff1d(np.arange(M), ids),
                                           min_frames, rigid_partner * s0)
             if ((seen > 0) & (rigid >= rigid_share * seen)).any():
                 continue
@@ -594,13 +631,35 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
             # the two markers of the split are one segment's: rigid to each other
             ta, tb = _tracks(X, list(splits[order[0]])).transpose(1, 0, 2)
             if _sd_to(tb[:, None], ta, min_frames)[0] <= rigid_pair * s0:
-                found = (a, b, c, splits[order[0]])
+                found = (ids, splits[order[0]])
                 break
         if found is None:
             return groups
-        a, b, c, (ga, gb) = found
-        groups = [g for m, g in enumerate(groups) if m not in (a, b, c)] + [ga, gb]
+        ids, (ga, gb) = found
+        groups = [g for m, g in enumerate(groups) if m not in ids] + [ga, gb]
     return groups
+
+
+TWO_OF_FOUR = True   # step 7 also takes two rigid pairs of ids that never share a frame
+
+
+def _pairs_of_pairs(vis, groups, ok, bad) -> list:
+    """Step 7's second case: four ids (a, b, c, d), a-b and c-d each rigid where seen
+    together (``ok``), the two pairs never seen in one frame and no cross pair off rigid
+    (``bad``): the two markers of a segment each left as two ids, their pieces before a
+    gap both markers shared and after it (figure 3024: both markers of a 2-marker segment
+    hidden over frames 29-56, each lost at its own time, and no merge across)."""
+    seen = np.array([vis[:, g].any(1) for g in groups])
+    pairs = [(a, b) for a in range(len(groups)) for b in np.flatnonzero(ok[a])
+             if b > a and (seen[a] & seen[b]).any()]
+    out = []
+    for i, (a, b) in enumerate(pairs):
+        for c, d in pairs[i + 1:]:
+            if len({a, b, c, d}) < 4 or ((seen[a] | seen[b]) & (seen[c] | seen[d])).any():
+                continue
+            if not bad[np.ix_([a, b], [c, d])].any():
+                out.append(tuple(sorted((a, int(b), c, int(d)))))
+    return sorted(set(out))
 
 
 def _with_groups(X, res: MarkerSets, groups) -> MarkerSets:
@@ -782,9 +841,12 @@ def _best_by_jumps(X, vis, ga0, gb0, alts, Pq, margin):
     return alts[i] if costs[i] <= now - margin else None
 
 
+TURN_FALLBACK = True   # step 4: a pair moving as one body whose partners decide nothing turns
+
+
 def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3.0,
                   rigid_share=0.8, max_rounds=3, turn_margin=np.pi / 3, cross_margin=None,
-                  jump_margin=10.8, max_step=np.inf):
+                  jump_margin=10.8, one_body=1.5, max_step=np.inf):
     """Step 4: exchange runs of fragments between two mutually rigid markers when that makes
     both more rigid with respect to their segment partners, else when that lowers the
     jumps of their distances to partners rigid to every fragment (``_jumps``, by at least
@@ -848,6 +910,11 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                                         jump_margin * s0 ** 2)
                     if ga is not None:
                         found = ga
+                if found is None and TURN_FALLBACK and S[a, b] <= one_body * s0:
+                    # partners that cannot tell (figure 896: a marker across the joint,
+                    # nearly in line with the segment, drifts by ~3 x s0 only): one body's
+                    # direction, as without partners
+                    found = _best_by_turning(X, vis, groups[a], groups[b], alts, turn_margin)
                 if found is None:
                     continue
                 _exchange(X, groups, P, S, a, b, *found, min_frames)
@@ -916,6 +983,9 @@ def _paced(X, span: dict, g, max_step: float) -> bool:
 
 KEPT_TRACK_VOTES = True    # step 4b: a marker without voters is judged by its kept track
 KEPT_TRACK_JUDGES_VOTERS = False   # ... also where the piece moved in is a voter itself
+
+
+MISFITS_ARE_BAD = True   # step 4b: a marker holding a misfit piece (step 4c's) is examined
 
 
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
@@ -1004,6 +1074,17 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
             ok[[a, b]] = False
             return np.flatnonzero(ok)
 
+        def holds_misfit(m, g):
+            """a fragment of marker m sits off its other fragments on every judge
+            (``_misfit`` above the jump bound: step 4c's misfit)"""
+            bound = jump_margin * s0 ** 2
+            for f in g if len(g) > 1 else ():
+                c = _misfit(X, vis, P, sd_of, f, [h for h in g if h != f], [m], rigid * s0,
+                            bound, voter_frames)
+                if c.size and c.min() > bound:
+                    return True
+            return False
+
         def displaced(g, new, h, ex):
             """a fragment moves from marker h into marker g (``new``: g's fragments after
             the exchange) off a body it was on: rigid (sd <= ``rigid`` x s0) to every track
@@ -1030,6 +1111,10 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
         bad = [m for m, g in enumerate(groups) if any(
             part[f].size and np.nanmax(_sd_to(P[:, part[f]], P[:, m], min_frames)) > rigid * s0
             for f in g if f in part)]
+        if MISFITS_ARE_BAD:
+            # a marker holding a piece that sits off its other fragments on every judge
+            # (step 4c's misfit) is examined too: a short piece barely moves a track's sd
+            bad += [m for m, g in enumerate(groups) if m not in bad and holds_misfit(m, g)]
         best = None
         for a in bad:
             for b in range(M):
@@ -1100,7 +1185,8 @@ def _rigid_to_all(sd_of, frags, rigid_sd) -> np.ndarray:
     return ok & seen
 
 
-def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames) -> np.ndarray:
+def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
+            with_frames=False):
     """How far fragment ``f`` sits from where the fragments ``kept`` (one marker) are.
     Judges: the tracks of P (T, M, 3) (not in ``excl``) rigid to f and to each kept
     fragment they are seen with (``sd_of(h)``: (M,) distance sd of fragment h to every
@@ -1110,17 +1196,20 @@ def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames) ->
     fragments yet drift between them, figure 87) and at one constant distance from the
     kept fragments (``_jump_ss`` <= ``bound``). Returns the ``_jump_ss`` (m^2)
     of kept + [f] on each judge (a piece of another marker sits at other distances; empty
-    when no track judges)."""
+    when no track judges); ``with_frames``: also the frames each judge is seen with f."""
+    none = (np.zeros(0), np.zeros(0, int)) if with_frames else np.zeros(0)
     if not kept:
-        return np.zeros(0)
+        return none
     ok = (sd_of(f) <= rigid_sd) & _rigid_to_all(sd_of, kept, rigid_sd)
     ok[excl] = False
     js = np.flatnonzero(ok)
     if js.size == 0:
-        return np.zeros(0)
+        return none
     frames = (vis[:, kept + [f]].any(1)[:, None] & ~np.isnan(P[:, js, 0])).sum(0)
     ss = _jump_ss(X, vis, kept + [f], P[:, js])
     use = (ss(kept) <= bound) & (frames >= partner_frames)
+    if with_frames:
+        return ss(kept + [f])[use], (vis[:, f][:, None] & ~np.isnan(P[:, js[use], 0])).sum(0)
     return ss(kept + [f])[use]
 
 
@@ -1165,6 +1254,17 @@ def _fits(costs, bound) -> bool:
     return bool(costs.size and costs.max() <= bound)
 
 
+def _placed(costs_frames, bound) -> bool:
+    """``_misfit``'s costs and frames (``with_frames``) place an unjudged piece: the judges
+    within ``bound`` see it for >= ``UNJUDGED_EVIDENCE`` frames in all."""
+    costs, frames = costs_frames
+    return bool(frames[costs <= bound].sum() >= UNJUDGED_EVIDENCE)
+
+
+UNJUDGED_MOVES = True   # step 4c: a piece no judge sees on its own marker moves where it fits
+UNJUDGED_EVIDENCE = 20  # ... on judges that see it for this many frames in all
+
+
 def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_frames=100,
                   max_rounds=10, one_body=1.5, max_step=np.inf):
     """Step 4c (module docstring): a fragment that fits the other fragments of its marker
@@ -1195,16 +1295,25 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                                rigid * s0, bound, voter_frames)
                 off = _off_body(X, vis, P, sd_of, f, kept, [a], rigid * s0, one_body * s0,
                                 bound, voter_frames)
-                if not (miss.size and miss.min() > bound) and not off:
+                unjudged = UNJUDGED_MOVES and miss.size == 0 and not off
+                if not (miss.size and miss.min() > bound) and not off and not unjudged:
                     continue
-                to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
-                      and _paced(X, span, groups[b] + [f], max_step)
-                      and _fits(_misfit(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
-                                        bound, voter_frames), bound)
-                      and not _off_body(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
-                                        one_body * s0, bound, voter_frames)]
+                if unjudged:
+                    to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
+                          and _paced(X, span, groups[b] + [f], max_step)
+                          and _placed(_misfit(X, vis, P, sd_of, f, groups[b], [a, b],
+                                              rigid * s0, bound, voter_frames,
+                                              with_frames=True), bound)]
+                else:
+                    to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
+                          and _paced(X, span, groups[b] + [f], max_step)
+                          and _fits(_misfit(X, vis, P, sd_of, f, groups[b], [a, b],
+                                            rigid * s0, bound, voter_frames), bound)
+                          and not _off_body(X, vis, P, sd_of, f, groups[b], [a, b],
+                                            rigid * s0, one_body * s0, bound, voter_frames)]
                 if len(to) == 1:
-                    moves.append((float(miss.max()) if miss.size else np.inf, f, a, to[0]))
+                    moves.append((-1.0 if unjudged else float(miss.max()) if miss.size
+                                  else np.inf, f, a, to[0]))
         if not moves:
             break
         _, f, a, b = max(moves)
@@ -1526,7 +1635,9 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                     v = _sphere_verdict(pts, ga, gb, na, nb, moved)
                     if body not in kept:
                         kept[body] = _direction_spread(kept_ends, frames[body])
-                    spread.append((kept[body], _direction_spread(ends, frames[body])))
+                    if not DIRECTION_SEES_MOVED or (sum(len(pts[f]) for f in moved)
+                                                    >= DIRECTION_MOVED_FRAMES):
+                        spread.append((kept[body], _direction_spread(ends, frames[body])))
                     if v is None:
                         continue
                     sk, sm, pk, pm, n = v

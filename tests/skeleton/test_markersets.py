@@ -618,3 +618,102 @@ def test_defer_gap_is_checked():
     X = np.zeros((20, 3, 3))
     with pytest.raises(ValueError, match="defer_gap"):
         merge_fragments(X, defer_gap=0)
+
+
+@pytest.mark.parametrize("k, piece_of, held_by", [(403, 19, 8), (3019, 1, 40)])
+def test_a_piece_no_judge_sees_moves_to_the_marker_a_partner_places_it_on(monkeypatch, k,
+                                                                        piece_of, held_by):
+    """Figures 403 (failing since it was first run) and 3019 (first run at stop 39): the
+    linkage gave a marker's first pieces (403: marker 19's first 47 and 38 frames; 3019:
+    marker 1's first 18) to a marker of another segment. No track judges them there: the
+    segment partners of the piece are not rigid to that marker, and its own partners are
+    hidden or far. Step 4c left such a piece where it was. It moves now to the one marker
+    on which tracks rigid to it and to that marker's fragments, at the same distance from
+    both, see it for >= 20 frames in all (``UNJUDGED_MOVES``); in 3019 a marker of the next
+    segment, rigid over those 18 frames, also judges there and sits 3.55 x the bound off,
+    so a verdict of every judge would keep the piece out."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(k)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.setattr(ms, "UNJUDGED_MOVES", False)            # the failure guarded against
+    off = merge_fragments(X)
+    assert sorted([piece_of, held_by]) in [sorted({int(owner[f]) for f in g})
+                                           for g in off.groups]
+
+
+def test_two_markers_left_as_four_ids_become_two(monkeypatch):
+    """Figure 3024 (first run at stop 39): both markers of a 2-marker segment are lost
+    before frame 79 (marker 2 over frames 29-56, marker 3 over 57-78), so each is two ids:
+    a pair of start pieces seen together, then a pair seen together after, never in one
+    frame with the first. Both pairings are overlap-free and rigid; the direction from one
+    marker to the other turns 74 deg across the change in the right one and 155 deg in the
+    wrong one. Step 7 takes such pairs of pairs as it takes three ids (``TWO_OF_FOUR``)."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(3024)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.setattr(ms, "TWO_OF_FOUR", False)               # the failure guarded against
+    off = merge_fragments(X)
+    assert off.n_markers == fig.n_markers + 2
+
+
+def test_partners_that_cannot_tell_leave_the_pair_to_its_direction(monkeypatch):
+    """Figure 896 (failing since it was first run): the two markers of a 2-marker segment
+    (33, 34) are swapped at their start pieces. One track counts as their segment partner:
+    marker 1 on the parent, 101 mm from their joint and nearly in line with the segment,
+    whose distance to either marker drifts by only 3.0-3.2 x s0 (sd) as the joint turns.
+    With that partner step 4 weighed the sd (the right exchange gains 0.51, under the margin
+    of 1) and the jumps (dropped: a drifting partner), and never looked at the direction,
+    which turns 35 deg across the gap when right and 156 deg as merged. A pair moving as one
+    body (sd <= 1.5 x s0) whose partners decide nothing is now judged by its direction
+    (``TURN_FALLBACK``)."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(896)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.setattr(ms, "TURN_FALLBACK", False)             # the failure guarded against
+    off = merge_fragments(X)
+    assert [33, 34] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+
+
+def test_a_marker_holding_a_misfit_piece_is_examined_for_exchanges(monkeypatch):
+    """Figure 1464 (failing since it was first run): markers 36 and 18, of two sibling
+    segments, each hold the other's end piece (65 and 49 frames). Over 400 frames a piece
+    that short barely moves a track's sd, so neither track was off its voters' partners and
+    step 4b never examined the pair; step 4c found 18's piece off marker 36 by its jump
+    (1.34 x the bound on marker 37) but could not move it, marker 18 being seen then. A
+    marker holding such a misfit is examined by step 4b now (``MISFITS_ARE_BAD``): the
+    exchange of the two end pieces gains 2.98 (margin 1)."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(1464)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.setattr(ms, "MISFITS_ARE_BAD", False)           # the failure guarded against
+    off = merge_fragments(X)
+    assert [18, 36] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+
+
+def test_the_direction_is_judged_on_a_body_that_sees_the_moved_pieces(monkeypatch):
+    """Figure 2710 (first run at stop 38): the start pieces of markers 4 and 5 (a 2-marker
+    segment, about equally far from their joint, so the spheres cannot tell) are
+    exchanged. Step 8's direction test takes the body that holds their direction tightest;
+    one body, whose frames miss the moved pieces, held it at 0.985 in both assignments,
+    while eight others rose by 0.07-0.29 with the exchange. A body now judges only where it
+    sees the moved pieces (``DIRECTION_SEES_MOVED``)."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(2710)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.setattr(ms, "DIRECTION_SEES_MOVED", False)      # the failure guarded against
+    off = merge_fragments(X)
+    assert [4, 5] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+
+
+def test_a_piece_no_judge_sees_stays_on_too_little_evidence(monkeypatch):
+    """Figure 556: marker 8's last 10 frames (its partner unseen then) sit on marker 12's
+    segment partner, rigid to them over those 10 frames, at its distance from marker 12.
+    One judge seeing the piece for 10 frames is too little to move it there
+    (``UNJUDGED_EVIDENCE`` 20); with any one judge enough the move is made and 556,
+    merged right before, mixes markers 8 and 12."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(556)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.setattr(ms, "UNJUDGED_EVIDENCE", 1)             # the failure guarded against
+    off = merge_fragments(X)
+    assert [8, 12] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
