@@ -251,7 +251,7 @@ def test_continuity_miss_is_zero_for_constant_velocity():
 
 
 @pytest.mark.parametrize("k", [25])
-def test_motion_continuity_rescues_a_continuation_beyond_max_distance(k):
+def test_motion_continuity_rescues_a_continuation_beyond_max_distance(monkeypatch, k):
     """Benchmark figure 25: the right continuation of a fragment lies 13.6 mm away after
     pose alignment (above max_distance_m), so without the continuity cue the fragment is
     merged later with a marker of another segment; its end, extrapolated at constant
@@ -259,7 +259,9 @@ def test_motion_continuity_rescues_a_continuation_beyond_max_distance(k):
     gaps merged first, step 3's ``defer_gap``, the pose alignment alone gets it right since
     stop 35, so the failure is shown with long gaps not deferred.)"""
     fig, mo, X, owner = _bench_figure(k)
+    _before_stop39(monkeypatch)
     before = merge_fragments(X, continuity_m=0.0, **NO_DEFER)
+    monkeypatch.undo()
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert mixed                                # the failure this test guards against ...
     assert any(len({int(fig.marker_segment[owner[f]]) for f in g}) > 1 for g in mixed)
@@ -358,6 +360,7 @@ def test_two_marker_segment_left_as_three_ids_becomes_two(monkeypatch, k):
     # step 8 (after step 7) would make the mixed id of 719 pure, but not join the split
     monkeypatch.setattr(markersets, "_sphere_exchanges",
                         lambda X, groups, *a, **kw: (groups, False))
+    _before_stop39(monkeypatch)
     kept = merge_fragments(X, **NO_DEFER)
     mixed = [g for g in kept.groups if len({int(owner[f]) for f in g}) > 1]
     assert kept.n_markers == fig.n_markers + 1 and len(mixed) == 1   # the failure ...
@@ -387,14 +390,29 @@ def test_three_ids_of_two_segments_stay_apart(monkeypatch):
     assert sorted(map(sorted, after)) == sorted(map(sorted, groups))
 
 
-def _mixed_with(monkeypatch, X, owner, step, merge_kw=None, **kw):
+STOP39_RULES = ("UNJUDGED_MOVES", "TWO_OF_FOUR", "TURN_FALLBACK", "MISFITS_ARE_BAD",
+                "DIRECTION_SEES_MOVED")
+
+
+def _before_stop39(monkeypatch):
+    """The five repair rules of stop 39 off (skeleton.markersets' flags): they put several
+    of the failures below right as well, a second line of repair, so a test that shows one
+    step's own effect by turning that step off turns them off too."""
+    import skeleton.markersets as ms
+    for name in STOP39_RULES:
+        monkeypatch.setattr(ms, name, False)
+
+
+def _mixed_with(monkeypatch, X, owner, step, merge_kw=None, before_stop39=False, **kw):
     """The physical markers (sorted) of each mixed id when the repair step ``step`` (a
     function of skeleton.markersets) runs with ``kw`` (``merge_fragments`` with
-    ``merge_kw``)."""
+    ``merge_kw``; ``before_stop39``: stop 39's rules off, ``_before_stop39``)."""
     import functools
 
     import skeleton.markersets as ms
     monkeypatch.setattr(ms, step, functools.partial(getattr(ms, step), **kw))
+    if before_stop39:
+        _before_stop39(monkeypatch)
     out = [sorted({int(owner[f]) for f in g})
            for g in merge_fragments(X, **(merge_kw or {})).groups]
     monkeypatch.undo()
@@ -459,7 +477,7 @@ def test_piece_off_a_rigid_body_moves_to_the_marker_it_fits(monkeypatch, k, mark
     _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     # without one-body partners as proof, the piece stays (the failure guarded against)
     assert _mixed_with(monkeypatch, X, owner, "_move_misfits", merge_kw=NO_DEFER,
-                       one_body=0.0) == [sorted((marker, other))]
+                       before_stop39=True, one_body=0.0) == [sorted((marker, other))]
     assert fig.marker_segment[marker] != fig.marker_segment[other]
 
 
@@ -475,6 +493,21 @@ def test_cross_exchange_may_move_a_piece_already_off_its_body():
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
+def _right_then_off(monkeypatch, k, flag, value, **also):
+    """Benchmark figure k merged right (with the module constants ``also`` of
+    skeleton.markersets set); then merged again with the constant ``flag`` set to
+    ``value`` too (the failure a test guards against). Returns (fig, that merge, the
+    physical markers (sorted) of each of its ids)."""
+    import skeleton.markersets as ms
+    for name, v in also.items():
+        monkeypatch.setattr(ms, name, v)
+    fig, mo, X, owner = _bench_figure(k)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.setattr(ms, flag, value)
+    off = merge_fragments(X)
+    return fig, off, [sorted({int(owner[f]) for f in g}) for g in off.groups]
+
+
 def test_a_marker_of_short_fragments_is_judged_by_its_kept_track(monkeypatch):
     """Figure 569 (failing since it was first run): markers 15 (a 4-marker segment) and 18
     (a 2-marker segment) both come back at frame 326, and the linkage gave each the
@@ -483,12 +516,8 @@ def test_a_marker_of_short_fragments_is_judged_by_its_kept_track(monkeypatch):
     and marker 18's fragments (69, 78, 87 frames) are all shorter than a voter's 100. The
     track they make together has a partner, its segment partner, rigid to the piece at
     1.0 x the measured sd; it judges now (``KEPT_TRACK_VOTES``)."""
-    import skeleton.markersets as ms
-    fig, mo, X, owner = _bench_figure(569)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    monkeypatch.setattr(ms, "KEPT_TRACK_VOTES", False)          # the failure guarded against
-    off = merge_fragments(X)
-    assert [15, 18] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+    _, _, ids = _right_then_off(monkeypatch, 569, "KEPT_TRACK_VOTES", False)
+    assert [15, 18] in ids
 
 
 def test_a_voter_moved_in_is_not_judged_by_the_kept_track(monkeypatch):
@@ -498,12 +527,11 @@ def test_a_voter_moved_in_is_not_judged_by_the_kept_track(monkeypatch):
     which takes a 27-frame piece of marker 35 out of marker 39's id), and left marker 35's
     piece with marker 39's end piece, an id no voter judges. A voter's own partners score
     it on a track it mostly makes, so the kept track judges only shorter pieces."""
-    import skeleton.markersets as ms
-    fig, mo, X, owner = _bench_figure(313)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    monkeypatch.setattr(ms, "KEPT_TRACK_JUDGES_VOTERS", True)   # the failure guarded against
-    off = merge_fragments(X)
-    assert [35, 39] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+    # since stop 39 step 4c's unjudged moves put that pair right as well: off, to show
+    # this rule alone
+    _, _, ids = _right_then_off(monkeypatch, 313, "KEPT_TRACK_JUDGES_VOTERS", True,
+                                UNJUDGED_MOVES=False)
+    assert [35, 39] in ids
 
 
 @pytest.mark.parametrize("k, pair", [(221, [21, 22]), (718, [41, 42])])
@@ -544,7 +572,7 @@ def test_two_markers_exchanged_are_told_apart_by_their_direction_in_a_neighbour(
     _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     # without the direction rule the two markers stay exchanged (the failure guarded against)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", merge_kw=NO_DEFER,
-                       direction_margin=np.inf) == [pair, pair]
+                       before_stop39=True, direction_margin=np.inf) == [pair, pair]
 
 
 def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
@@ -573,7 +601,7 @@ def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
 
 
 @pytest.mark.parametrize("k", [1183, 1749])
-def test_long_gaps_are_judged_after_the_short_ones_merge(k):
+def test_long_gaps_are_judged_after_the_short_ones_merge(monkeypatch, k):
     """Figures 1183 and 1749 (held out at stop 34): the first pass joined a fragment of one
     marker to a fragment of another segment's marker across a long gap (1749: 7.6 mm
     pose-aligned across 209 frames), while the right continuation 27 frames on, aligned on
@@ -581,6 +609,7 @@ def test_long_gaps_are_judged_after_the_short_ones_merge(k):
     frames first lets the partners span the short gap; without it the figure fails."""
     fig, mo, X, owner = _bench_figure(k)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+    _before_stop39(monkeypatch)
     off = merge_fragments(X, defer_gap=None)
     assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
 
@@ -596,13 +625,14 @@ def test_no_merge_crosses_a_gap_faster_than_any_fragment_moves():
     assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
 
 
-def test_no_later_step_moves_a_piece_faster_than_any_fragment_moves():
+def test_no_later_step_moves_a_piece_faster_than_any_fragment_moves(monkeypatch):
     """Figure 2555 (held out, first run at stop 36): the linkage merged every marker right,
     then step 4b moved the last 15 frames of a marker onto another segment's marker, 557 mm
     from its end 9 frames before (3.7 x the fastest frame-to-frame step). The later steps
     keep step 3's speed gate; without it the figure fails."""
     fig, mo, X, owner = _bench_figure(2555)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+    _before_stop39(monkeypatch)
     off = merge_fragments(X, speed_gate=None)
     assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
 
@@ -632,13 +662,8 @@ def test_a_piece_no_judge_sees_moves_to_the_marker_a_partner_places_it_on(monkey
     both, see it for >= 20 frames in all (``UNJUDGED_MOVES``); in 3019 a marker of the next
     segment, rigid over those 18 frames, also judges there and sits 3.55 x the bound off,
     so a verdict of every judge would keep the piece out."""
-    import skeleton.markersets as ms
-    fig, mo, X, owner = _bench_figure(k)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    monkeypatch.setattr(ms, "UNJUDGED_MOVES", False)            # the failure guarded against
-    off = merge_fragments(X)
-    assert sorted([piece_of, held_by]) in [sorted({int(owner[f]) for f in g})
-                                           for g in off.groups]
+    _, _, ids = _right_then_off(monkeypatch, k, "UNJUDGED_MOVES", False)
+    assert sorted([piece_of, held_by]) in ids
 
 
 def test_two_markers_left_as_four_ids_become_two(monkeypatch):
@@ -648,11 +673,7 @@ def test_two_markers_left_as_four_ids_become_two(monkeypatch):
     frame with the first. Both pairings are overlap-free and rigid; the direction from one
     marker to the other turns 74 deg across the change in the right one and 155 deg in the
     wrong one. Step 7 takes such pairs of pairs as it takes three ids (``TWO_OF_FOUR``)."""
-    import skeleton.markersets as ms
-    fig, mo, X, owner = _bench_figure(3024)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    monkeypatch.setattr(ms, "TWO_OF_FOUR", False)               # the failure guarded against
-    off = merge_fragments(X)
+    fig, off, _ = _right_then_off(monkeypatch, 3024, "TWO_OF_FOUR", False)
     assert off.n_markers == fig.n_markers + 2
 
 
@@ -666,12 +687,8 @@ def test_partners_that_cannot_tell_leave_the_pair_to_its_direction(monkeypatch):
     which turns 35 deg across the gap when right and 156 deg as merged. A pair moving as one
     body (sd <= 1.5 x s0) whose partners decide nothing is now judged by its direction
     (``TURN_FALLBACK``)."""
-    import skeleton.markersets as ms
-    fig, mo, X, owner = _bench_figure(896)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    monkeypatch.setattr(ms, "TURN_FALLBACK", False)             # the failure guarded against
-    off = merge_fragments(X)
-    assert [33, 34] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+    _, _, ids = _right_then_off(monkeypatch, 896, "TURN_FALLBACK", False)
+    assert [33, 34] in ids
 
 
 def test_a_marker_holding_a_misfit_piece_is_examined_for_exchanges(monkeypatch):
@@ -682,12 +699,8 @@ def test_a_marker_holding_a_misfit_piece_is_examined_for_exchanges(monkeypatch):
     (1.34 x the bound on marker 37) but could not move it, marker 18 being seen then. A
     marker holding such a misfit is examined by step 4b now (``MISFITS_ARE_BAD``): the
     exchange of the two end pieces gains 2.98 (margin 1)."""
-    import skeleton.markersets as ms
-    fig, mo, X, owner = _bench_figure(1464)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    monkeypatch.setattr(ms, "MISFITS_ARE_BAD", False)           # the failure guarded against
-    off = merge_fragments(X)
-    assert [18, 36] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+    _, _, ids = _right_then_off(monkeypatch, 1464, "MISFITS_ARE_BAD", False)
+    assert [18, 36] in ids
 
 
 def test_the_direction_is_judged_on_a_body_that_sees_the_moved_pieces(monkeypatch):
@@ -697,12 +710,8 @@ def test_the_direction_is_judged_on_a_body_that_sees_the_moved_pieces(monkeypatc
     one body, whose frames miss the moved pieces, held it at 0.985 in both assignments,
     while eight others rose by 0.07-0.29 with the exchange. A body now judges only where it
     sees the moved pieces (``DIRECTION_SEES_MOVED``)."""
-    import skeleton.markersets as ms
-    fig, mo, X, owner = _bench_figure(2710)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    monkeypatch.setattr(ms, "DIRECTION_SEES_MOVED", False)      # the failure guarded against
-    off = merge_fragments(X)
-    assert [4, 5] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+    _, _, ids = _right_then_off(monkeypatch, 2710, "DIRECTION_SEES_MOVED", False)
+    assert [4, 5] in ids
 
 
 def test_a_piece_no_judge_sees_stays_on_too_little_evidence(monkeypatch):
@@ -711,9 +720,5 @@ def test_a_piece_no_judge_sees_stays_on_too_little_evidence(monkeypatch):
     One judge seeing the piece for 10 frames is too little to move it there
     (``UNJUDGED_EVIDENCE`` 20); with any one judge enough the move is made and 556,
     merged right before, mixes markers 8 and 12."""
-    import skeleton.markersets as ms
-    fig, mo, X, owner = _bench_figure(556)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    monkeypatch.setattr(ms, "UNJUDGED_EVIDENCE", 1)             # the failure guarded against
-    off = merge_fragments(X)
-    assert [8, 12] in [sorted({int(owner[f]) for f in g}) for g in off.groups]
+    _, _, ids = _right_then_off(monkeypatch, 556, "UNJUDGED_EVIDENCE", 1)
+    assert [8, 12] in ids
