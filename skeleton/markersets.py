@@ -1298,19 +1298,18 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                 unjudged = UNJUDGED_MOVES and miss.size == 0 and not off
                 if not (miss.size and miss.min() > bound) and not off and not unjudged:
                     continue
-                if unjudged:
-                    to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
-                          and _paced(X, span, groups[b] + [f], max_step)
-                          and _placed(_misfit(X, vis, P, sd_of, f, groups[b], [a, b],
-                                              rigid * s0, bound, voter_frames,
-                                              with_frames=True), bound)]
-                else:
-                    to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
-                          and _paced(X, span, groups[b] + [f], max_step)
-                          and _fits(_misfit(X, vis, P, sd_of, f, groups[b], [a, b],
-                                            rigid * s0, bound, voter_frames), bound)
-                          and not _off_body(X, vis, P, sd_of, f, groups[b], [a, b],
-                                            rigid * s0, one_body * s0, bound, voter_frames)]
+                def fits_in(b):
+                    if unjudged:
+                        return _placed(_misfit(X, vis, P, sd_of, f, groups[b], [a, b],
+                                               rigid * s0, bound, voter_frames,
+                                               with_frames=True), bound)
+                    return (_fits(_misfit(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
+                                          bound, voter_frames), bound)
+                            and not _off_body(X, vis, P, sd_of, f, groups[b], [a, b],
+                                              rigid * s0, one_body * s0, bound, voter_frames))
+
+                to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
+                      and _paced(X, span, groups[b] + [f], max_step) and fits_in(b)]
                 if len(to) == 1:
                     moves.append((-1.0 if unjudged else float(miss.max()) if miss.size
                                   else np.inf, f, a, to[0]))
