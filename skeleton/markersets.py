@@ -161,7 +161,15 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    them as from the rest of marker 1 (0.01 and 0.58 x the bound) and a marker of the next
    segment, rigid to both by the sd bound, 3.55 x the bound off; figures 403 and 3016,
    the first pieces of a marker given to another segment's marker, whose partners are not
-   rigid to them);
+   rigid to them). A misfit that no marker free over its frames takes is exchanged
+   (``MISFIT_EXCHANGES``): the one overlap-free exchange of a run of fragments between its
+   marker and another that moves it there and after which every moved fragment fits the
+   fragments its new marker kept (``_fits``, and off no one-body track) is made (figure
+   3224, held out at stop 39: the linkage gave marker 5 (a 4-marker segment) marker 19's
+   first 11 frames and marker 19 (a 2-marker segment) marker 5's first 27. Marker 19's
+   piece sat 13.5-35.2 x the bound off on all three of marker 5's segment partners and
+   fitted marker 19 (0.57 x the bound on its partner), but marker 19 was seen then; step
+   4b's sd gain of the exchange was 0.63, under its margin of 1);
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
@@ -248,7 +256,23 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    assignments alike and, holding the direction tightest, hid every other body's verdict
    (figure 2710: two start pieces of a 2-marker segment's markers exchanged, 32 and 46
    frames; a body seeing none of those frames held the direction at 0.985 both ways,
-   eight others rose by 0.07-0.29 with the exchange).
+   eight others rose by 0.07-0.29 with the exchange). Where neither the spheres nor the
+   direction find an exchange, motion continuity may (``CONTINUITY_EXCHANGES``): a piece
+   seen only while the other marker is hidden leaves the direction blind, and two markers
+   about as far from their joint leave the spheres alike, but a piece of the other marker
+   jumps at both its ends. A marker's continuity cost is the sum over its changes of
+   fragment of log(1 + (miss / m)^2): the miss of step 3's constant-velocity lines, m the
+   typical miss of one marker across that gap (0.6 mm x gap + 0.009 mm x gap^2, step 3's
+   medians). The exchange that lowers the pair's cost most is made when it lowers it by
+   ``CONTINUITY_MARGIN`` (4), no sphere judge vetoes it and no body finds its direction
+   worse by the direction margin. Measured before the margin was chosen (``/tmp``
+   collector, figures 0-299, all merged right: the best alternative of each of the 4026
+   one-body pairs step 8 looks at in the final merge): every one would have mixed
+   markers, and the largest cost they lowered was 2.41 (7 of 4026 at 1 or more). The
+   failures it fixes lowered it by 8.51 (3293, held out at stop 39: marker 43's 18-frame
+   piece on marker 42, 79 and 53 mm off at gaps of 11 and 4 frames, 6.3 and 16.4 mm on
+   its own marker at 7 and 14; spheres 1.51 and 1.35 residual sds), 12.07 (611), 4.18
+   (1210) and 8.92 (1306); 1304's right exchange lowers it by 2.43 only and stays.
 9. step 8 can leave a marker as two ids, as the swap repair can (step 5): in figure 1833
    (held out, first run at stop 34) the linkage merged marker 17 right, the swap repair
    moved its first fragment out and a piece of marker 15 (same segment) in, and step 8
@@ -1310,15 +1334,64 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
 
                 to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
                       and _paced(X, span, groups[b] + [f], max_step) and fits_in(b)]
+                key = -1.0 if unjudged else float(miss.max()) if miss.size else np.inf
                 if len(to) == 1:
-                    moves.append((-1.0 if unjudged else float(miss.max()) if miss.size
-                                  else np.inf, f, a, to[0]))
+                    moves.append((key, f, a, to[0], None))
+                elif not to and not unjudged and MISFIT_EXCHANGES:
+                    swaps = _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid * s0,
+                                              one_body * s0, bound, voter_frames, max_step)
+                    if len(swaps) == 1:
+                        moves.append((key, f, a, swaps[0][0], swaps[0][1:]))
         if not moves:
             break
-        _, f, a, b = max(moves)
-        groups[a] = [h for h in groups[a] if h != f]
-        groups[b] = groups[b] + [f]
+        _, f, a, b, swap = max(moves, key=lambda m: m[:3])
+        if swap is None:
+            groups[a] = [h for h in groups[a] if h != f]
+            groups[b] = groups[b] + [f]
+        else:
+            groups[a], groups[b] = swap
     return groups
+
+
+MISFIT_EXCHANGES = True  # step 4c: a misfit with no free marker to go to is exchanged
+
+
+def _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid_sd, body_sd, bound,
+                      partner_frames, max_step) -> list:
+    """Step 4c's exchanges for misfit fragment ``f`` of marker ``a`` that no marker free
+    over its frames takes: every overlap-free exchange of a run of fragments between a and
+    another marker b (``_cross_alternatives``) that moves f to b and after which every
+    moved fragment fits the fragments its new marker kept (``_fits`` of ``_misfit``: some
+    judge, every one within ``bound``; and not ``_off_body``) and no change of fragment
+    crosses its gap faster than ``max_step`` (``_paced``). Returns (b, a's fragments, b's
+    fragments) for each."""
+    out = []
+    for b in range(len(groups)):
+        if b == a:
+            continue
+        for na, nb in _cross_alternatives(span, groups[a], groups[b]):
+            if f not in nb:
+                continue
+            ok = True
+            for new, old in ((na, groups[a]), (nb, groups[b])):
+                kept = [h for h in new if h in old]
+                if not kept or not (_paced(X, span, new, max_step)):
+                    ok = False
+                    break
+                for h in new:
+                    if h in old:
+                        continue
+                    if not (_fits(_misfit(X, vis, P, sd_of, h, kept, [a, b], rigid_sd, bound,
+                                          partner_frames), bound)
+                            and not _off_body(X, vis, P, sd_of, h, kept, [a, b], rigid_sd,
+                                              body_sd, bound, partner_frames)):
+                        ok = False
+                        break
+                if not ok:
+                    break
+            if ok:
+                out.append((b, na, nb))
+    return out
 
 
 def _first_seen(X, f) -> int:
@@ -1560,6 +1633,39 @@ def _sphere_verdict(pts, ga, gb, na, nb, moved):
     return sk, sm, pk / nd, pm / nd, n
 
 
+CONTINUITY_EXCHANGES = True  # step 8: exchanges no sphere or direction finds, by continuity
+CONTINUITY_MARGIN = 4.0      # ... the least gain in the continuity cost
+CONTINUITY_MM_PER_FRAME = (0.6, 0.009)   # a junction's typical miss: a x gap + b x gap^2 (mm)
+
+
+def _continuity_cost(X, vis):
+    """``cost(g)``: the motion-continuity cost of one marker's fragments ``g``: over each
+    change from one fragment to the next (in time order), log(1 + (miss / m)^2), the miss
+    that of step 3 (``_junctions``: constant-velocity lines fitted to the 10 frames each
+    side, met at mid-gap) and m the typical miss of one marker across that gap,
+    a x gap + b x gap^2 mm (``CONTINUITY_MM_PER_FRAME``: step 3's medians, 2 mm at 1-5
+    frames to 36 mm at 31-45). A piece of another marker misses at both its ends."""
+    ends = {}
+    a_mm, b_mm = CONTINUITY_MM_PER_FRAME
+
+    def end(f):
+        if f not in ends:
+            fr = np.flatnonzero(vis[:, f])
+            r = _run_ends(fr, X[fr, f], 10)
+            ends[f] = (int(fr[0]), r[0], r[-1])
+        return ends[f]
+
+    def cost(g) -> float:
+        g = sorted(g, key=lambda f: end(f)[0])
+        c = 0.0
+        for f0, f1 in zip(g[:-1], g[1:]):
+            (gap, miss), = _junctions([end(f0)[2]], [end(f1)[1]])
+            if np.isfinite(miss):
+                c += float(np.log1p((miss * 1e3 / (a_mm * gap + b_mm * gap ** 2)) ** 2))
+        return c
+    return cost
+
+
 def _direction_spread(ends, frame) -> float:
     """Mean resultant length (0-1) of the unit direction from the first to the second of
     two markers' tracks ``ends`` (T, 2, 3) in a body's ``frame`` (``_body_frame``), over the
@@ -1587,6 +1693,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
     if not s0 > 0:
         return groups, False
     span = _spans(vis, groups)
+    continuity = _continuity_cost(X, vis)
     changed = False
     for _ in range(max_rounds):
         seen = ~np.isnan(P[..., 0])
@@ -1605,7 +1712,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                 in_body[body, f] = np.einsum("bij,bj->bi", R[ok], x[ok]) + t[ok]
             return in_body[body, f]
 
-        best = turn = None
+        best = turn = cont = None
         for a, b in zip(*np.nonzero(np.triu(one, 1))):
             ga, gb = groups[a], groups[b]
             if len(ga) + len(gb) < 3:
@@ -1658,8 +1765,16 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                             and not (spread[:, 0] - spread[:, 1] >= direction_margin).any()
                             and (turn is None or rx - rk > turn[0])):
                         turn = (rx - rk, a, b, na, nb)
+                if CONTINUITY_EXCHANGES and not veto and not (
+                        spread.size and (spread[:, 0] - spread[:, 1] >= direction_margin).any()):
+                    smooth = (continuity(ga) + continuity(gb)
+                              - continuity(na) - continuity(nb))
+                    if smooth >= CONTINUITY_MARGIN and (cont is None or smooth > cont[0]):
+                        cont = (smooth, a, b, na, nb)
         if best is None:
             best = turn
+        if best is None:
+            best = cont
         if best is None:
             break
         _exchange(X, groups, P, S, *best[1:], min_frames)

@@ -148,7 +148,7 @@ def test_swapped_markers_of_a_two_marker_segment_are_repaired(k):
 
 
 @pytest.mark.parametrize("k", [131, 188])
-def test_pieces_exchanged_across_segments_are_repaired(k):
+def test_pieces_exchanged_across_segments_are_repaired(monkeypatch, k):
     """Benchmark figures 131 and 188: the linkage gives two markers of different segments
     each other's end piece (both vanish at about the same time, and each continuation lies
     closer to the wrong one). Step 4's repair only looks at two markers of one segment;
@@ -160,9 +160,12 @@ def test_pieces_exchanged_across_segments_are_repaired(k):
     assert len(mixed) == 2                      # the failure this test guards against ...
     a, b = ({int(owner[f]) for f in g} for g in mixed)
     assert a == b and len({int(fig.marker_segment[m]) for m in a}) == 2
-    # ... which step 4 alone leaves as it is
+    # ... which step 4 alone leaves as it is (step 4c's exchanges of stop 40 off: they
+    # repair it too)
+    _before_stop39(monkeypatch)
     kept = _repair_swaps(X, [list(g) for g in before.groups], MIN_FRAMES, 1.0,
                          cross_margin=np.inf)
+    monkeypatch.undo()
     assert sum(len({int(owner[f]) for f in g}) > 1 for g in kept) == 2
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
@@ -392,21 +395,24 @@ def test_three_ids_of_two_segments_stay_apart(monkeypatch):
 
 STOP39_RULES = ("UNJUDGED_MOVES", "TWO_OF_FOUR", "TURN_FALLBACK", "MISFITS_ARE_BAD",
                 "DIRECTION_SEES_MOVED")
+STOP40_RULES = ("MISFIT_EXCHANGES", "CONTINUITY_EXCHANGES")
+WITHOUT_STOP40 = {name: False for name in STOP40_RULES}
 
 
 def _before_stop39(monkeypatch):
-    """The five repair rules of stop 39 off (skeleton.markersets' flags): they put several
-    of the failures below right as well, a second line of repair, so a test that shows one
-    step's own effect by turning that step off turns them off too."""
+    """The five repair rules of stop 39 and the two of stop 40 off (skeleton.markersets'
+    flags): they put several of the failures below right as well, a second line of repair,
+    so a test that shows one step's own effect by turning that step off turns them off
+    too."""
     import skeleton.markersets as ms
-    for name in STOP39_RULES:
+    for name in STOP39_RULES + STOP40_RULES:
         monkeypatch.setattr(ms, name, False)
 
 
 def _mixed_with(monkeypatch, X, owner, step, merge_kw=None, before_stop39=False, **kw):
     """The physical markers (sorted) of each mixed id when the repair step ``step`` (a
     function of skeleton.markersets) runs with ``kw`` (``merge_fragments`` with
-    ``merge_kw``; ``before_stop39``: stop 39's rules off, ``_before_stop39``)."""
+    ``merge_kw``; ``before_stop39``: stop 39's and 40's rules off, ``_before_stop39``)."""
     import functools
 
     import skeleton.markersets as ms
@@ -516,7 +522,7 @@ def test_a_marker_of_short_fragments_is_judged_by_its_kept_track(monkeypatch):
     and marker 18's fragments (69, 78, 87 frames) are all shorter than a voter's 100. The
     track they make together has a partner, its segment partner, rigid to the piece at
     1.0 x the measured sd; it judges now (``KEPT_TRACK_VOTES``)."""
-    _, _, ids = _right_then_off(monkeypatch, 569, "KEPT_TRACK_VOTES", False)
+    _, _, ids = _right_then_off(monkeypatch, 569, "KEPT_TRACK_VOTES", False, **WITHOUT_STOP40)
     assert [15, 18] in ids
 
 
@@ -687,7 +693,7 @@ def test_partners_that_cannot_tell_leave_the_pair_to_its_direction(monkeypatch):
     which turns 35 deg across the gap when right and 156 deg as merged. A pair moving as one
     body (sd <= 1.5 x s0) whose partners decide nothing is now judged by its direction
     (``TURN_FALLBACK``)."""
-    _, _, ids = _right_then_off(monkeypatch, 896, "TURN_FALLBACK", False)
+    _, _, ids = _right_then_off(monkeypatch, 896, "TURN_FALLBACK", False, **WITHOUT_STOP40)
     assert [33, 34] in ids
 
 
@@ -699,7 +705,8 @@ def test_a_marker_holding_a_misfit_piece_is_examined_for_exchanges(monkeypatch):
     (1.34 x the bound on marker 37) but could not move it, marker 18 being seen then. A
     marker holding such a misfit is examined by step 4b now (``MISFITS_ARE_BAD``): the
     exchange of the two end pieces gains 2.98 (margin 1)."""
-    _, _, ids = _right_then_off(monkeypatch, 1464, "MISFITS_ARE_BAD", False)
+    _, _, ids = _right_then_off(monkeypatch, 1464, "MISFITS_ARE_BAD", False,
+                                **WITHOUT_STOP40)
     assert [18, 36] in ids
 
 
@@ -722,3 +729,30 @@ def test_a_piece_no_judge_sees_stays_on_too_little_evidence(monkeypatch):
     merged right before, mixes markers 8 and 12."""
     _, _, ids = _right_then_off(monkeypatch, 556, "UNJUDGED_EVIDENCE", 1)
     assert [8, 12] in ids
+
+
+def test_a_misfit_with_no_free_marker_is_exchanged(monkeypatch):
+    """Figure 3224 (held out at stop 39): the linkage gave marker 5 (a 4-marker segment)
+    marker 19's first 11 frames, and marker 19 (a 2-marker segment) marker 5's first 27.
+    Marker 19's piece sits 13.5-35.2 x the jump bound off on all three of marker 5's
+    segment partners and fits marker 19, but marker 19 is seen over those frames, so step
+    4c could not move it, and step 4b's sd gain for the exchange was 0.63 (margin 1).
+    Step 4c now makes the one exchange after which every moved piece fits the marker it
+    joins (``MISFIT_EXCHANGES``)."""
+    _, _, ids = _right_then_off(monkeypatch, 3224, "MISFIT_EXCHANGES", False)
+    assert [5, 19] in ids
+
+
+@pytest.mark.parametrize("k, a, b", [(3293, 42, 43), (611, 0, 1), (1210, 27, 28),
+                                     (1306, 31, 32)])
+def test_a_piece_seen_while_its_partner_is_hidden_is_judged_by_continuity(monkeypatch, k,
+                                                                           a, b):
+    """Figures 611, 1210, 1306 (failing since they were first run) and 3293 (held out at
+    stop 39): a piece of one marker of a 2-marker segment, seen only while the other is
+    hidden, sits on the other marker. The direction between them is blind there and both
+    sit about equally far from their joint (3293: spheres 1.51 and 1.35 residual sds), but
+    the piece jumps at both ends where it is (3293: 79 and 53 mm at gaps of 11 and 4
+    frames; 6.3 and 16.4 mm on its own marker). Step 8 now makes the exchange that lowers
+    the continuity cost by >= 4 (``CONTINUITY_EXCHANGES``)."""
+    _, _, ids = _right_then_off(monkeypatch, k, "CONTINUITY_EXCHANGES", False)
+    assert [a, b] in ids
