@@ -200,6 +200,14 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    3024: a 2-marker segment whose markers are lost before frame 79, one over frames 29-56,
    the other over 57-78); such pairs of pairs are judged as three ids are
    (``TWO_OF_FOUR``; 3024's right pairing turns 74 deg across the change, the other 155).
+7b. join by continuity (``_join_by_continuity``, ``CONTINUITY_JOINS``): while there are
+   still more markers than the bound, two markers that never share a frame are joined
+   when the join costs at most ``CONTINUITY_MARGIN`` (4) in step 8's continuity cost (the
+   changes of fragment it makes) and every other join of either costs at least 4 more,
+   the cheapest first. An end piece of a 2-marker segment's marker whose partner is
+   hidden across the gap has no pose to align on and no partner to join by (figure 339:
+   marker 39's last 62 frames, 37 frames after the rest, its partner seen in 8 of them:
+   1.93, the next join 7.96; 1371: marker 33's last 10 frames, 1.12 against 7.80).
 8. joint spheres (``_sphere_exchanges``): a marker turns about its segment's joint with a
    neighbouring segment, so in that segment's frame it stays on a sphere about the joint.
    Two markers moving as one body (sd <= 1.5 x s0 over >= 100 frames) that no earlier step
@@ -547,6 +555,8 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         res = merge_again(res, True)
         groups = _join_by_partners(X, [list(g) for g in res.groups], min_frames, first.n_min)
         groups = _two_of_three(X, groups, min_frames, first.n_min)
+        if CONTINUITY_JOINS:
+            groups = _join_by_continuity(X, groups, first.n_min, max_step)
         groups, exchanged = _sphere_exchanges(X, groups, min_frames, max_step=max_step)
         if len(groups) < res.n_markers or exchanged:
             res = _with_groups(X, res, groups)
@@ -729,6 +739,46 @@ def _join_by_partners(X, groups, min_frames, n_min, rigid=3.0, match=3.0) -> lis
         if not cand:
             return groups
         a, b = cand[0]
+        groups[a] = groups[a] + groups[b]
+        del groups[b]
+    return groups
+
+
+CONTINUITY_JOINS = True  # step 7b: markers left as two ids are joined by motion continuity
+
+
+def _join_by_continuity(X, groups, n_min, max_step=np.inf) -> list:
+    """Step 7b (module docstring): while there are more markers than ``n_min``, two
+    markers that never share a frame are joined when joining them costs at most
+    ``CONTINUITY_MARGIN`` in step 8's continuity cost (``_continuity_cost``: the changes of
+    fragment the join makes) and every other join of either costs at least that much more;
+    the cheapest such join first, none that crosses a gap faster than ``max_step`` per
+    frame (``_paced``)."""
+    vis = ~np.isnan(X[..., 0])
+    span = _spans(vis, groups)
+    cost = _continuity_cost(X, vis)
+    while len(groups) > n_min:
+        seen = np.stack([vis[:, g].any(1) for g in groups], 1)
+        overlap = seen.T.astype(int) @ seen.astype(int)
+        M = len(groups)
+        own = [cost(g) for g in groups]
+        C = np.full((M, M), np.inf)
+        for a in range(M):
+            for b in range(a + 1, M):
+                if not overlap[a, b] and _paced(X, span, groups[a] + groups[b], max_step):
+                    C[a, b] = C[b, a] = cost(groups[a] + groups[b]) - own[a] - own[b]
+        best = None
+        for a in range(M):
+            b = int(np.argmin(C[a]))
+            if not C[a, b] <= CONTINUITY_MARGIN:
+                continue
+            rest = np.r_[np.delete(C[a], b), np.delete(C[b], a)]
+            if (rest >= C[a, b] + CONTINUITY_MARGIN).all() and (best is None
+                                                                 or C[a, b] < best[0]):
+                best = (C[a, b], min(a, b), max(a, b))
+        if best is None:
+            return groups
+        _, a, b = best
         groups[a] = groups[a] + groups[b]
         del groups[b]
     return groups
