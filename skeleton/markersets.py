@@ -281,6 +281,11 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    piece on marker 42, 79 and 53 mm off at gaps of 11 and 4 frames, 6.3 and 16.4 mm on
    its own marker at 7 and 14; spheres 1.51 and 1.35 residual sds), 12.07 (611), 4.18
    (1210) and 8.92 (1306); 1304's right exchange lowers it by 2.43 only and stays.
+   ``/tmp`` screen with stop 40's three rules (4c's exchanges, step 7b, this), one
+   ``merge_fragments`` per figure as ``bench_markersets.py`` builds them: figures 0-1839
+   1834 -> 1839/1840 (fixed 339, 611, 1210, 1306, 1371; none lost), 1840-3559 1718/1720
+   (2539, 2738 fail); held out, first run 3800-4039 with the rules off and on: 240/240
+   both; real recordings' merged groups identical with and without them.
 9. step 8 can leave a marker as two ids, as the swap repair can (step 5): in figure 1833
    (held out, first run at stop 34) the linkage merged marker 17 right, the swap repair
    moved its first fragment out and a piece of marker 15 (same segment) in, and step 8
