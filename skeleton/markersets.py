@@ -482,7 +482,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 8 and 9 of the module docstring
+    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8 and 9 of the module docstring
     (``swap_margin``: the least gain in the rigidity cost for which fragments change
     marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
@@ -1430,7 +1430,7 @@ def _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid_sd, body_sd, b
             ok = True
             for new, old in ((na, groups[a]), (nb, groups[b])):
                 kept = [h for h in new if h in old]
-                if not kept or not (_paced(X, span, new, max_step)):
+                if not kept or not _paced(X, span, new, max_step):
                     ok = False
                     break
                 for h in new:
