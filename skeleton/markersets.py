@@ -1382,10 +1382,8 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                         return _placed(_misfit(X, vis, P, sd_of, f, groups[b], [a, b],
                                                rigid * s0, bound, voter_frames,
                                                with_frames=True), bound)
-                    return (_fits(_misfit(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
-                                          bound, voter_frames), bound)
-                            and not _off_body(X, vis, P, sd_of, f, groups[b], [a, b],
-                                              rigid * s0, one_body * s0, bound, voter_frames))
+                    return _fits_on(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
+                                    one_body * s0, bound, voter_frames)
 
                 to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
                       and _paced(X, span, groups[b] + [f], max_step) and fits_in(b)]
@@ -1420,33 +1418,24 @@ def _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid_sd, body_sd, b
     judge, every one within ``bound``; and not ``_off_body``) and no change of fragment
     crosses its gap faster than ``max_step`` (``_paced``). Returns (b, a's fragments, b's
     fragments) for each."""
-    out = []
-    for b in range(len(groups)):
-        if b == a:
-            continue
-        for na, nb in _cross_alternatives(span, groups[a], groups[b]):
-            if f not in nb:
-                continue
-            ok = True
-            for new, old in ((na, groups[a]), (nb, groups[b])):
-                kept = [h for h in new if h in old]
-                if not kept or not _paced(X, span, new, max_step):
-                    ok = False
-                    break
-                for h in new:
-                    if h in old:
-                        continue
-                    if not (_fits(_misfit(X, vis, P, sd_of, h, kept, [a, b], rigid_sd, bound,
-                                          partner_frames), bound)
-                            and not _off_body(X, vis, P, sd_of, h, kept, [a, b], rigid_sd,
-                                              body_sd, bound, partner_frames)):
-                        ok = False
-                        break
-                if not ok:
-                    break
-            if ok:
-                out.append((b, na, nb))
-    return out
+    def takes(new, old, ex):
+        kept = [h for h in new if h in old]
+        return bool(kept) and _paced(X, span, new, max_step) and all(
+            _fits_on(X, vis, P, sd_of, h, kept, ex, rigid_sd, body_sd, bound, partner_frames)
+            for h in new if h not in old)
+
+    return [(b, na, nb) for b in range(len(groups)) if b != a
+            for na, nb in _cross_alternatives(span, groups[a], groups[b])
+            if f in nb and takes(na, groups[a], [a, b]) and takes(nb, groups[b], [a, b])]
+
+
+def _fits_on(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, partner_frames) -> bool:
+    """Fragment ``f`` fits the marker of the fragments ``kept``: ``_fits`` of ``_misfit``
+    (some judge, every one within ``bound``) and not ``_off_body``."""
+    return (_fits(_misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames),
+                  bound)
+            and not _off_body(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound,
+                              partner_frames))
 
 
 def _first_seen(X, f) -> int:
@@ -1775,6 +1764,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
             done = set()
             kept = {}                     # body -> the current assignment's direction spread
             kept_ends = P[:, [a, b]]        # the current tracks (kept current by _exchange)
+            smooth_now = None               # the current assignment's continuity cost
             for na, nb in _cross_alternatives(span, ga, gb):
                 key = frozenset((frozenset(na), frozenset(nb)))
                 if key in done or not (_paced(X, span, na, max_step)
@@ -1822,8 +1812,9 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                         turn = (rx - rk, a, b, na, nb)
                 if CONTINUITY_EXCHANGES and not veto and not (
                         spread.size and (spread[:, 0] - spread[:, 1] >= direction_margin).any()):
-                    smooth = (continuity(ga) + continuity(gb)
-                              - continuity(na) - continuity(nb))
+                    if smooth_now is None:
+                        smooth_now = continuity(ga) + continuity(gb)
+                    smooth = smooth_now - continuity(na) - continuity(nb)
                     if smooth >= CONTINUITY_MARGIN and (cont is None or smooth > cont[0]):
                         cont = (smooth, a, b, na, nb)
         if best is None:
