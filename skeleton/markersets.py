@@ -294,6 +294,23 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    runs again while there are more markers than the bound. ``/tmp`` screen of figures
    0-1839 as for step 8's direction rule: 1818 of 1840 against 1817 before, the same
    failures but 1833 (fixed); none lost.
+10. split joins (``_split_joins``, ``SPLIT_JOINS``): where the steps above end with more
+   markers than the bound, one marker may hold the pieces of two others: its earlier
+   fragments belong to one marker and its later ones to another (figure 2539, held out at
+   stop 36: the linkage put marker 27's last 38 frames onto the end of marker 47, whose
+   own last fragment stayed an id alone; the swap repair then gave marker 47 its fragments
+   back but its first 63 frames, which stayed with marker 27's piece, 300 frames apart).
+   Each cut of a marker's fragments (in time order) into an earlier and a later part,
+   each part joined to another marker it shares no frame with, is scored by step 8's
+   continuity cost (the changes of fragment the joins make, less the marker's own); the
+   cheapest is made when it costs at most ``CONTINUITY_MARGIN`` (4), each moved fragment
+   fits the fragments of the marker it joins (no judge of step 4c sees it at another
+   distance, no track moving as one body with them is off it: ``_misfit``, ``_off_body``)
+   and every other split join or plain join of the marker that fits so costs at least 4
+   more; none that crosses a gap faster than step 3's gate. One per round, while there
+   are more markers than the bound. On 2539 the right split join costs 0.93; the next,
+   marker 27's piece onto marker 26 (same segment, hidden 9 frames before it), 3.04, is
+   off marker 26's body.
 
 The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
 (1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on
@@ -482,7 +499,8 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8 and 9 of the module docstring
+    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8, 9 and 10 of the module
+    docstring
     (``swap_margin``: the least gain in the rigidity cost for which fragments change
     marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
@@ -568,6 +586,11 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         if exchanged:
             # step 8 can leave a marker as two ids likewise: merged within max_distance_m
             res = merge_again(res, False)
+        if SPLIT_JOINS and res.n_markers > first.n_min:
+            groups = _split_joins(X, [list(g) for g in res.groups], first.n_min, min_frames,
+                                  max_step=max_step)
+            if len(groups) < res.n_markers:
+                res = _with_groups(X, res, groups)
     return res
 
 
@@ -786,6 +809,84 @@ def _join_by_continuity(X, groups, n_min, max_step=np.inf) -> list:
         _, a, b = best
         groups[a] = groups[a] + groups[b]
         del groups[b]
+    return groups
+
+
+SPLIT_JOINS = True  # step 10: a marker holding two others' pieces is split and joined
+
+
+def _split_joins(X, groups, n_min, min_frames, max_step=np.inf, rigid=3.0, one_body=1.5,
+                 jump_margin=10.8, voter_frames=100) -> list:
+    """Step 10 (module docstring): while there are more markers than ``n_min``, a marker
+    whose earlier fragments join one other marker and whose later ones another is split
+    and joined so, where that costs at most ``CONTINUITY_MARGIN`` in step 8's continuity
+    cost (``_continuity_cost``), every moved fragment fits its new marker (``_takes``) and
+    every other split join or plain join of the marker that fits costs at least that much
+    more; the cheapest such marker first, none that crosses a gap faster than
+    ``max_step`` per frame (``_paced``)."""
+    vis = ~np.isnan(X[..., 0])
+    span = _spans(vis, groups)
+    cost = _continuity_cost(X, vis)
+    while len(groups) > n_min:
+        P = _tracks(X, groups)
+        s0 = _pair_sd(P, min_frames)[1]
+        if not s0 > 0:
+            return groups
+        sd_of = _fragment_sd(X, vis, P, min_frames)
+        bound = jump_margin * s0 ** 2
+        M = len(groups)
+        seen = np.stack([vis[:, g].any(1) for g in groups], 1)
+        own = [cost(g) for g in groups]
+
+        def takes(part, b, a) -> bool:
+            """every fragment of ``part`` (of marker a) fits marker b's fragments: no judge
+            sees it at another distance and it is not off their body (no judge at all is
+            no objection)."""
+            return not any(
+                _off_body(X, vis, P, sd_of, h, groups[b], [a, b], rigid * s0, one_body * s0,
+                          bound, voter_frames)
+                or not (_misfit(X, vis, P, sd_of, h, groups[b], [a, b], rigid * s0, bound,
+                                voter_frames) <= bound).all()
+                for h in part)
+
+        best = None
+        for a in range(M):
+            g = sorted(groups[a], key=lambda f: span[f][0])
+            if len(g) < 2:
+                continue
+            alts = [(cost(groups[a] + groups[b]) - own[a] - own[b], None) for b in range(M)
+                    if b != a and not (seen[:, a] & seen[:, b]).any()
+                    and _paced(X, span, groups[a] + groups[b], max_step)]
+            for cut in range(1, len(g)):
+                d = []
+                for part in (g[:cut], g[cut:]):
+                    s = vis[:, part].any(1)
+                    d.append([(cost(groups[b] + part) - own[b], b) for b in range(M)
+                              if b != a and not (s & seen[:, b]).any()
+                              and _paced(X, span, groups[b] + part, max_step)])
+                alts += [(c1 + c2 - own[a], (cut, b, c)) for c1, b in d[0] for c2, c in d[1]
+                         if b != c]
+            alts.sort(key=lambda x: x[0])
+
+            def fits(move) -> bool:
+                return move is None or (takes(g[:move[0]], move[1], a)
+                                        and takes(g[move[0]:], move[2], a))
+            for i, (c, move) in enumerate(alts):
+                if c > CONTINUITY_MARGIN:
+                    break
+                if move is None or not fits(move):
+                    continue
+                if not any(x < c + CONTINUITY_MARGIN and fits(m)
+                           for j, (x, m) in enumerate(alts) if j != i) and (
+                        best is None or c < best[0]):
+                    best = (c, a, g, move)
+                break
+        if best is None:
+            return groups
+        _, a, g, (cut, b, c) = best
+        groups[b] = groups[b] + g[:cut]
+        groups[c] = groups[c] + g[cut:]
+        del groups[a]
     return groups
 
 

@@ -399,15 +399,16 @@ STOP39_RULES = ("UNJUDGED_MOVES", "TWO_OF_FOUR", "TURN_FALLBACK", "MISFITS_ARE_B
                 "DIRECTION_SEES_MOVED")
 STOP40_RULES = ("MISFIT_EXCHANGES", "CONTINUITY_EXCHANGES", "CONTINUITY_JOINS")
 WITHOUT_STOP40 = {name: False for name in STOP40_RULES}
+STOP41_RULES = ("SPLIT_JOINS",)
 
 
 def _before_stop39(monkeypatch):
-    """The five repair rules of stop 39 and the three of stop 40 off (skeleton.markersets'
-    flags): they put several of the failures below right as well, a second line of repair,
+    """The five repair rules of stop 39, the three of stop 40 and step 10 off
+    (skeleton.markersets' flags): they put several of the failures below right as well, a second line of repair,
     so a test that shows one step's own effect by turning that step off turns them off
     too."""
     import skeleton.markersets as ms
-    for name in STOP39_RULES + STOP40_RULES:
+    for name in STOP39_RULES + STOP40_RULES + STOP41_RULES:
         monkeypatch.setattr(ms, name, False)
 
 
@@ -535,10 +536,11 @@ def test_a_voter_moved_in_is_not_judged_by_the_kept_track(monkeypatch):
     which takes a 27-frame piece of marker 35 out of marker 39's id), and left marker 35's
     piece with marker 39's end piece, an id no voter judges. A voter's own partners score
     it on a track it mostly makes, so the kept track judges only shorter pieces."""
-    # since stop 39 step 4c's unjudged moves put that pair right as well: off, to show
-    # this rule alone
+    # since stop 39 step 4c's unjudged moves put that pair right as well, and since stop
+    # 41 step 10's split joins (marker 35's piece and marker 39's end piece, one id: the
+    # pattern step 10 is for): both off, to show this rule alone
     _, _, ids = _right_then_off(monkeypatch, 313, "KEPT_TRACK_JUDGES_VOTERS", True,
-                                UNJUDGED_MOVES=False)
+                                UNJUDGED_MOVES=False, SPLIT_JOINS=False)
     assert [35, 39] in ids
 
 
@@ -770,3 +772,15 @@ def test_an_end_piece_left_as_its_own_id_is_joined_by_continuity(monkeypatch, k,
     7b joins it now (``CONTINUITY_JOINS``)."""
     fig, off, ids = _right_then_off(monkeypatch, k, "CONTINUITY_JOINS", False)
     assert off.n_markers == fig.n_markers + 1 and ids.count([marker]) == 2
+
+
+def test_a_marker_holding_two_others_pieces_is_split_and_joined(monkeypatch):
+    """Figure 2539 (held out at stop 36): the linkage put marker 27's last 38 frames onto
+    the end of marker 47, and the swap repair gave marker 47 its fragments back but the
+    first 63 frames, which stayed with marker 27's piece (one id, 300 frames apart), one
+    id more than the figure's markers. Step 10 splits that id and joins each part to its
+    marker (continuity cost 0.93; marker 27's piece onto marker 26, 3.04, is off marker
+    26's body), ``SPLIT_JOINS``."""
+    fig, off, ids = _right_then_off(monkeypatch, 2539, "SPLIT_JOINS", False)
+    assert off.n_markers == fig.n_markers + 1
+    assert [27, 47] in ids and [47] in ids and [27] in ids
