@@ -169,7 +169,13 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    first 11 frames and marker 19 (a 2-marker segment) marker 5's first 27. Marker 19's
    piece sat 13.5-35.2 x the bound off on all three of marker 5's segment partners and
    fitted marker 19 (0.57 x the bound on its partner), but marker 19 was seen then; step
-   4b's sd gain of the exchange was 0.63, under its margin of 1);
+   4b's sd gain of the exchange was 0.63, under its margin of 1). A piece off its
+   marker's body that some judge still finds where it is moves (or is exchanged) only
+   where a judge on the new marker is not one of those (``TELLING_JUDGES``, ``_tells``;
+   figure 4083, held out at stop 41: the linkage merged every marker right, but a track
+   across a joint, one body with marker 8 until then, sat 3.1 mm further from its last
+   23 frames, and on marker 10 (same segment) the piece's one judge was segment partner
+   9, 90.2 mm from marker 8 and 89.5 from marker 10, which finds it on marker 8 too);
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
@@ -285,7 +291,13 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    ``merge_fragments`` per figure as ``bench_markersets.py`` builds them: figures 0-1839
    1834 -> 1839/1840 (fixed 339, 611, 1210, 1306, 1371; none lost), 1840-3559 1718/1720
    (2539, 2738 fail); held out, first run 3800-4039 with the rules off and on: 240/240
-   both; real recordings' merged groups identical with and without them.
+   both; real recordings' merged groups identical with and without them. No exchange is
+   made (sphere, direction or continuity) that step 4's jump test would undo: one that
+   raises ``_jumps`` on the tracks rigid to every fragment of both markers by
+   ``jump_margin`` x s0 squared (``STEP8_JUMPS``; figure 4455, held out at stop 41: the
+   direction test exchanged the last runs of two markers of a 4-marker segment, 130 mm
+   apart, whose two segment partners put the jump cost at 7.8 mm^2 before and 2.2e6 after,
+   bound 19.7; step 4b has the same veto).
 9. step 8 can leave a marker as two ids, as the swap repair can (step 5): in figure 1833
    (held out, first run at stop 34) the linkage merged marker 17 right, the swap repair
    moved its first fragment out and a piece of marker 15 (same segment) in, and step 8
@@ -1366,7 +1378,7 @@ def _rigid_to_all(sd_of, frags, rigid_sd) -> np.ndarray:
 
 
 def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
-            with_frames=False):
+            with_frames=False, with_judges=False):
     """How far fragment ``f`` sits from where the fragments ``kept`` (one marker) are.
     Judges: the tracks of P (T, M, 3) (not in ``excl``) rigid to f and to each kept
     fragment they are seen with (``sd_of(h)``: (M,) distance sd of fragment h to every
@@ -1376,8 +1388,10 @@ def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
     fragments yet drift between them, figure 87) and at one constant distance from the
     kept fragments (``_jump_ss`` <= ``bound``). Returns the ``_jump_ss`` (m^2)
     of kept + [f] on each judge (a piece of another marker sits at other distances; empty
-    when no track judges); ``with_frames``: also the frames each judge is seen with f."""
-    none = (np.zeros(0), np.zeros(0, int)) if with_frames else np.zeros(0)
+    when no track judges); ``with_frames``: also the frames each judge is seen with f;
+    ``with_judges``: also the judges' track indices."""
+    none = ((np.zeros(0), np.zeros(0, int)) if with_frames or with_judges
+            else np.zeros(0))
     if not kept:
         return none
     ok = (sd_of(f) <= rigid_sd) & _rigid_to_all(sd_of, kept, rigid_sd)
@@ -1390,6 +1404,8 @@ def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
     use = (ss(kept) <= bound) & (frames >= partner_frames)
     if with_frames:
         return ss(kept + [f])[use], (vis[:, f][:, None] & ~np.isnan(P[:, js[use], 0])).sum(0)
+    if with_judges:
+        return ss(kept + [f])[use], js[use]
     return ss(kept + [f])[use]
 
 
@@ -1453,7 +1469,8 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
     the same distance is support enough - in figure 31 a marker of another segment, rigid
     to both fragments, sat 9.7 mm further from one) - or that is off a track moving as one
     body with them (``_off_body``; ``one_body`` x s0, 0 turns it off) - moves to the one
-    marker it fits (``_fits``, and not ``_off_body``) without sharing a frame with it; one
+    marker it fits (``_fits``, and not ``_off_body``) without sharing a frame with it,
+    where a judge there does not also find it on its own marker (``_tells``); one
     move per round (the largest misfit first; a piece no judge sees, first of all), at
     most ``max_rounds``."""
     vis = ~np.isnan(X[..., 0])
@@ -1471,8 +1488,10 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                 continue
             for f in g:
                 kept = [h for h in g if h != f]
-                miss = _misfit(X, vis, P, sd_of, f, kept, [a],
-                               rigid * s0, bound, voter_frames)
+                miss, judges = _misfit(X, vis, P, sd_of, f, kept, [a], rigid * s0, bound,
+                                       voter_frames, with_judges=True)
+                # judges that find f where its marker is (an off-body piece can have some)
+                at_home = set(judges[miss <= bound].tolist())
                 off = _off_body(X, vis, P, sd_of, f, kept, [a], rigid * s0, one_body * s0,
                                 bound, voter_frames)
                 unjudged = UNJUDGED_MOVES and miss.size == 0 and not off
@@ -1483,8 +1502,11 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                         return _placed(_misfit(X, vis, P, sd_of, f, groups[b], [a, b],
                                                rigid * s0, bound, voter_frames,
                                                with_frames=True), bound)
-                    return _fits_on(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
-                                    one_body * s0, bound, voter_frames)
+                    if not _fits_on(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
+                                    one_body * s0, bound, voter_frames):
+                        return False
+                    return _tells(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0, bound,
+                                  voter_frames, at_home)
 
                 to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
                       and _paced(X, span, groups[b] + [f], max_step) and fits_in(b)]
@@ -1493,7 +1515,8 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                     moves.append((key, f, a, to[0], None))
                 elif not to and not unjudged and MISFIT_EXCHANGES:
                     swaps = _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid * s0,
-                                              one_body * s0, bound, voter_frames, max_step)
+                                              one_body * s0, bound, voter_frames, max_step,
+                                              at_home)
                     if len(swaps) == 1:
                         moves.append((key, f, a, swaps[0][0], swaps[0][1:]))
         if not moves:
@@ -1508,10 +1531,24 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
 
 
 MISFIT_EXCHANGES = True  # step 4c: a misfit with no free marker to go to is exchanged
+TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
+#                          also find the piece on its own (figure 4083)
+
+
+def _tells(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames, at_home) -> bool:
+    """A judge of fragment ``f`` on the marker of the fragments ``kept`` (``_misfit``) is
+    not among ``at_home``, the judges that find f where it is (``TELLING_JUDGES``; figure
+    4083: an off-body piece's own segment partner, as far from its true marker as from the
+    one it would move to, was the only judge there). True without such judges at home."""
+    if not (TELLING_JUDGES and at_home):
+        return True
+    _, there = _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
+                       with_judges=True)
+    return not set(there.tolist()) <= at_home
 
 
 def _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid_sd, body_sd, bound,
-                      partner_frames, max_step) -> list:
+                      partner_frames, max_step, at_home=frozenset()) -> list:
     """Step 4c's exchanges for misfit fragment ``f`` of marker ``a`` that no marker free
     over its frames takes: every overlap-free exchange of a run of fragments between a and
     another marker b (``_cross_alternatives``) that moves f to b and after which every
@@ -1527,7 +1564,9 @@ def _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid_sd, body_sd, b
 
     return [(b, na, nb) for b in range(len(groups)) if b != a
             for na, nb in _cross_alternatives(span, groups[a], groups[b])
-            if f in nb and takes(na, groups[a], [a, b]) and takes(nb, groups[b], [a, b])]
+            if f in nb and takes(na, groups[a], [a, b]) and takes(nb, groups[b], [a, b])
+            and _tells(X, vis, P, sd_of, f, [h for h in nb if h in groups[b]], [a, b],
+                       rigid_sd, bound, partner_frames, at_home)]
 
 
 def _fits_on(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, partner_frames) -> bool:
@@ -1779,6 +1818,7 @@ def _sphere_verdict(pts, ga, gb, na, nb, moved):
 
 
 CONTINUITY_EXCHANGES = True  # step 8: exchanges no sphere or direction finds, by continuity
+STEP8_JUMPS = True  # step 8 makes no exchange that step 4's jump test would undo (4455)
 CONTINUITY_MARGIN = 4.0      # ... the least gain in the continuity cost
 CONTINUITY_MM_PER_FRAME = (0.6, 0.009)   # a junction's typical miss: a x gap + b x gap^2 (mm)
 
@@ -1826,11 +1866,13 @@ def _direction_spread(ends, frame) -> float:
 
 def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_rms=1.5,
                       min_misfit=2.0, max_rounds=3, direction_margin=DIRECTION_MARGIN,
-                      max_step=np.inf) -> tuple[list, bool]:
+                      max_step=np.inf, rigid=3.0, jump_margin=10.8) -> tuple[list, bool]:
     """Step 8 (module docstring): exchanges between two markers moving as one body judged
     by the sphere each keeps about its joint in the frame of a neighbouring body, then by
     how their direction stays within a joint's range in that frame
-    (``direction_margin``). Returns the groups and whether any changed."""
+    (``direction_margin``). None that step 4's jump test would undo (``STEP8_JUMPS``:
+    raising ``_jumps`` on the tracks rigid to every fragment of both markers by
+    ``jump_margin`` x s0 squared). Returns the groups and whether any changed."""
     vis = ~np.isnan(X[..., 0])
     groups = [list(g) for g in groups]
     P = _tracks(X, groups)
@@ -1858,17 +1900,30 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
             return in_body[body, f]
 
         best = turn = cont = None
+        sd_of = _fragment_sd(X, vis, P, min_frames) if STEP8_JUMPS else None
         for a, b in zip(*np.nonzero(np.triu(one, 1))):
             ga, gb = groups[a], groups[b]
             if len(ga) + len(gb) < 3:
                 continue
+            undone = set()             # alternatives step 4's jump test would undo
+            if STEP8_JUMPS:
+                alts = _cross_alternatives(span, ga, gb)
+                js = _rigid_to_all(sd_of, ga + gb, rigid * s0)
+                js[[a, b]] = False
+                js = np.flatnonzero(js)
+                if alts and js.size:
+                    now_j, alt_j = _jumps(X, vis, ga, gb, alts, P[:, js],
+                                          jump_margin * s0 ** 2)
+                    undone = {frozenset((frozenset(na), frozenset(nb)))
+                              for (na, nb), c in zip(alts, alt_j)
+                              if c >= now_j + jump_margin * s0 ** 2}
             done = set()
             kept = {}                     # body -> the current assignment's direction spread
             kept_ends = P[:, [a, b]]        # the current tracks (kept current by _exchange)
             smooth_now = None               # the current assignment's continuity cost
             for na, nb in _cross_alternatives(span, ga, gb):
                 key = frozenset((frozenset(na), frozenset(nb)))
-                if key in done or not (_paced(X, span, na, max_step)
+                if key in done or key in undone or not (_paced(X, span, na, max_step)
                                        and _paced(X, span, nb, max_step)):
                     continue
                 done.add(key)

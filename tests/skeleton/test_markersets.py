@@ -400,15 +400,16 @@ STOP39_RULES = ("UNJUDGED_MOVES", "TWO_OF_FOUR", "TURN_FALLBACK", "MISFITS_ARE_B
 STOP40_RULES = ("MISFIT_EXCHANGES", "CONTINUITY_EXCHANGES", "CONTINUITY_JOINS")
 WITHOUT_STOP40 = {name: False for name in STOP40_RULES}
 STOP41_RULES = ("SPLIT_JOINS",)
+STOP42_RULES = ("TELLING_JUDGES", "STEP8_JUMPS")
 
 
 def _before_stop39(monkeypatch):
-    """The five repair rules of stop 39, the three of stop 40 and step 10 off
-    (skeleton.markersets' flags): they put several of the failures below right as well, a second line of repair,
+    """The five repair rules of stop 39, the three of stop 40, step 10, step 4c's
+    telling judges and step 8's jump veto off (skeleton.markersets' flags): they put several of the failures below right as well, a second line of repair,
     so a test that shows one step's own effect by turning that step off turns them off
     too."""
     import skeleton.markersets as ms
-    for name in STOP39_RULES + STOP40_RULES + STOP41_RULES:
+    for name in STOP39_RULES + STOP40_RULES + STOP41_RULES + STOP42_RULES:
         monkeypatch.setattr(ms, name, False)
 
 
@@ -591,8 +592,11 @@ def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     (same segment) in, and step 8 moves that piece back out, leaving marker 17 as two ids
     5.1 mm apart (pose-aligned) that nothing merged after step 8. Merging within
     ``max_distance_m`` now runs again after step 8. (Since stop 35 the linkage's deferral
-    of long gaps, step 3's ``defer_gap``, avoids the state; it is shown without it.)"""
+    of long gaps, step 3's ``defer_gap``, avoids the state; it is shown without it. Since
+    stop 42 step 4c keeps the first fragment where it is, its one judge there finding it
+    on marker 17 too (``TELLING_JUDGES``); it is shown with that rule off.)"""
     import skeleton.markersets as ms
+    monkeypatch.setattr(ms, "TELLING_JUDGES", False)
     fig, mo, X, owner = _bench_figure(1833)
     after8 = []
     step8 = ms._sphere_exchanges
@@ -608,6 +612,7 @@ def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     assert sum(17 in {int(owner[f]) for f in g} for g in after8[0]) == 2
     monkeypatch.undo()
     _check(fig, X, owner, merge_fragments(X), mo.markers)
+    _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
 
 
 @pytest.mark.parametrize("k", [1183, 1749])
@@ -784,3 +789,26 @@ def test_a_marker_holding_two_others_pieces_is_split_and_joined(monkeypatch):
     fig, off, ids = _right_then_off(monkeypatch, 2539, "SPLIT_JOINS", False)
     assert off.n_markers == fig.n_markers + 1
     assert [27, 47] in ids and [47] in ids and [27] in ids
+
+
+def test_a_move_needs_a_judge_that_tells_the_markers_apart(monkeypatch):
+    """Figure 4083 (held out at stop 41): the linkage merged every marker right, but step 4c
+    moved marker 8's last 23 frames onto marker 10 (same segment). A track across a joint,
+    moving as one body with marker 8 until then, sat 3.1 mm further from the piece over
+    its 13 frames (between-fragment sum of squares 117.3 mm^2 against the bound of 20.4:
+    off its body); on marker 10 the piece's one judge was segment partner 9 (0.06 mm^2),
+    which finds it on marker 8 too (9.3 mm^2): 9 is 90.2 mm from marker 8 and 89.5 mm from
+    marker 10. A move now needs a judge on the new marker that does not find the piece
+    where it is (``TELLING_JUDGES``)."""
+    _, _, ids = _right_then_off(monkeypatch, 4083, "TELLING_JUDGES", False)
+    assert [8, 10] in ids
+
+
+def test_step_8_makes_no_exchange_that_step_4_would_undo(monkeypatch):
+    """Figure 4455 (held out at stop 41): the linkage merged every marker right, but step
+    8's direction test exchanged the last runs of markers 32 and 33 (a 4-marker segment,
+    130 mm apart): their segment partners 34 and 35, rigid to every fragment of both,
+    put the jump cost at 7.8 mm^2 before and 2.2e6 mm^2 after (step 4's bound 19.7). Step
+    8 now makes no exchange that step 4's jump test would undo (``STEP8_JUMPS``)."""
+    _, _, ids = _right_then_off(monkeypatch, 4455, "STEP8_JUMPS", False)
+    assert [32, 33] in ids
