@@ -135,7 +135,12 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    frames went to a marker of the next segment, 4.1 x s0 off its one-body partner there, on
    voters' partners across a joint that were rigid over the voters' frames only). A
    fragment already off its body may move: figure 799's three mixed markers are put right
-   by two exchanges, the first of which leaves a piece on a wrong marker;
+   by two exchanges, the first of which leaves a piece on a wrong marker - but not onto a
+   body it is further off than the one it leaves (``LESS_OFF_BODY``; figure 4579, held
+   out at stop 42: marker 12's last 53 frames (a 2-marker segment) went to marker 22 of
+   another 2-marker segment, on voters' partners across a joint that barely moved until
+   then; at home the piece sat 1.3 x s0 from its segment partner and 3.9 x from a marker
+   across that joint, on marker 22 9.2 x from its segment partner);
 4c. misfit pieces (``_move_misfits``): a piece too short to move a track's sd (figure 617:
    the first 11 frames of a marker whose next piece starts 26 frames later, given to a
    marker of another segment 4.6-9.4 mm from it over those frames) is judged by the jumps
@@ -175,7 +180,15 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    figure 4083, held out at stop 41: the linkage merged every marker right, but a track
    across a joint, one body with marker 8 until then, sat 3.1 mm further from its last
    23 frames, and on marker 10 (same segment) the piece's one judge was segment partner
-   9, 90.2 mm from marker 8 and 89.5 from marker 10, which finds it on marker 8 too);
+   9, 90.2 mm from marker 8 and 89.5 from marker 10, which finds it on marker 8 too).
+   A piece that a track moving as one body with its marker's other fragments finds not
+   rigid to it (> 3 x s0), that no judge finds where it is and that no marker fits on a
+   judge moves to the one marker free over its frames (and paced), where no judge finds
+   it at another distance and no one-body track off it (``ONLY_FREE_MARKER``; figure
+   4662, held out at stop 42: the linkage put marker 13's first 32 frames at the start of
+   marker 4, another segment's, 5.5 x s0 off its segment partner; marker 13's partner is
+   seen with the piece for 8 frames, so no judge placed it. Off by the jump test alone,
+   or with a judge at home, it moved right pieces in figures 339, 1306, 2539 and 4465);
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
@@ -1178,6 +1191,7 @@ KEPT_TRACK_JUDGES_VOTERS = False   # ... also where the piece moved in is a vote
 
 
 MISFITS_ARE_BAD = True   # step 4b: a marker holding a misfit piece (step 4c's) is examined
+LESS_OFF_BODY = True     # step 4b: nor a move off one body onto one it is further off
 
 
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
@@ -1199,7 +1213,8 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
     factor at which skeleton.segments merges two clusters) - one that makes the direction
     between them turn by ``turn_margin`` more across fragment changes (``_turning``: a swap
     flips it), nor one that moves a fragment off a one-body track it was rigid to onto one
-    it is not (``body_veto``; figures 379 and 799).
+    it is not (``body_veto``; figures 379 and 799), nor onto a body it is further off than
+    the one it leaves (``LESS_OFF_BODY``; figure 4579).
     Step 4's looser ``rigid_pair`` (5 x s0) let the veto block a right exchange
     in figure 261: markers of two segments at 4.8 x s0, whose direction turned 99 -> 161 deg
     when put right. Figure 939: the two markers of a 2-marker segment had
@@ -1286,17 +1301,24 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
             4.1 x s0 off its one-body partner there, 0.9 x s0 from its own; the voters'
             partners across a joint outweighed it). A fragment already off its body may
             move (figure 799: three markers' pieces put right in two exchanges, the first
-            leaving a piece on a wrong marker)"""
+            leaving a piece on a wrong marker), but not onto a body it is further off: the
+            largest sd to the new one-body tracks above the largest to the old ones
+            (``LESS_OFF_BODY``; figure 4579, 9.2 against 3.9 x s0)"""
             kept = [f for f in new if f in g]
             stay = [f for f in h if f not in new]
             for f in new:
                 if f in g:
                     continue
                 _, home = _body_sds(vis, P, sd_of, f, stay, ex, one_body * s0, voter_frames)
-                if not (home.size and (home <= rigid * s0).all()):
+                if not home.size:
                     continue
                 _, there = _body_sds(vis, P, sd_of, f, kept, ex, one_body * s0, voter_frames)
-                if (there > rigid * s0).any():
+                if not (there > rigid * s0).any():
+                    continue
+                if (home <= rigid * s0).all():
+                    return True
+                if LESS_OFF_BODY and there.max() > home.max():
+                    # off both bodies, further off the new one (figure 4579)
                     return True
             return False
 
@@ -1470,7 +1492,10 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
     to both fragments, sat 9.7 mm further from one) - or that is off a track moving as one
     body with them (``_off_body``; ``one_body`` x s0, 0 turns it off) - moves to the one
     marker it fits (``_fits``, and not ``_off_body``) without sharing a frame with it,
-    where a judge there does not also find it on its own marker (``_tells``); one
+    where a judge there does not also find it on its own marker (``_tells``) - a piece
+    not rigid to a one-body track of its marker, found there by no judge and fitting no
+    marker on a judge, to the one marker free over its frames where no judge or one-body
+    track finds it off (``ONLY_FREE_MARKER``); one
     move per round (the largest misfit first; a piece no judge sees, first of all), at
     most ``max_rounds``."""
     vis = ~np.isnan(X[..., 0])
@@ -1513,6 +1538,19 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                 key = -1.0 if unjudged else float(miss.max()) if miss.size else np.inf
                 if len(to) == 1:
                     moves.append((key, f, a, to[0], None))
+                elif not to and off and ONLY_FREE_MARKER and not at_home and (
+                        _body_sds(vis, P, sd_of, f, kept, [a], one_body * s0,
+                                  voter_frames)[1] > rigid * s0).any() and (free := [
+                        b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
+                        and _paced(X, span, groups[b] + [f], max_step)]) and len(free) == 1 \
+                        and not _misfit(X, vis, P, sd_of, f, groups[free[0]], [a, free[0]],
+                                        rigid * s0, bound, voter_frames).size \
+                        and not _off_body(X, vis, P, sd_of, f, groups[free[0]], [a, free[0]],
+                                          rigid * s0, one_body * s0, bound, voter_frames):
+                    # off its marker's body (not rigid to a one-body track; no judge finds
+                    # it there), and one marker only is free over its frames, with no track
+                    # there to judge it (figure 4662)
+                    moves.append((key, f, a, free[0], None))
                 elif not to and not unjudged and MISFIT_EXCHANGES:
                     swaps = _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid * s0,
                                               one_body * s0, bound, voter_frames, max_step,
@@ -1531,6 +1569,8 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
 
 
 MISFIT_EXCHANGES = True  # step 4c: a misfit with no free marker to go to is exchanged
+ONLY_FREE_MARKER = True  # step 4c: a piece off its body that no judge places goes to the one
+#                          marker free over its frames (figure 4662)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
 #                          also find the piece on its own (figure 4083)
 

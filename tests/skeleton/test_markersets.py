@@ -401,15 +401,19 @@ STOP40_RULES = ("MISFIT_EXCHANGES", "CONTINUITY_EXCHANGES", "CONTINUITY_JOINS")
 WITHOUT_STOP40 = {name: False for name in STOP40_RULES}
 STOP41_RULES = ("SPLIT_JOINS",)
 STOP42_RULES = ("TELLING_JUDGES", "STEP8_JUMPS")
+STOP44_RULES = ("LESS_OFF_BODY", "ONLY_FREE_MARKER")
 
 
 def _before_stop39(monkeypatch):
     """The five repair rules of stop 39, the three of stop 40, step 10, step 4c's
-    telling judges and step 8's jump veto off (skeleton.markersets' flags): they put several of the failures below right as well, a second line of repair,
+    telling judges, step 8's jump veto, step 4b's further-off veto and step 4c's one free
+    marker off (skeleton.markersets' flags): they put several of the failures below right
+    as well, a second line of repair,
     so a test that shows one step's own effect by turning that step off turns them off
     too."""
     import skeleton.markersets as ms
-    for name in STOP39_RULES + STOP40_RULES + STOP41_RULES + STOP42_RULES:
+    for name in (STOP39_RULES + STOP40_RULES + STOP41_RULES + STOP42_RULES
+                 + STOP44_RULES):
         monkeypatch.setattr(ms, name, False)
 
 
@@ -812,3 +816,28 @@ def test_step_8_makes_no_exchange_that_step_4_would_undo(monkeypatch):
     8 now makes no exchange that step 4's jump test would undo (``STEP8_JUMPS``)."""
     _, _, ids = _right_then_off(monkeypatch, 4455, "STEP8_JUMPS", False)
     assert [32, 33] in ids
+
+
+def test_cross_exchange_never_moves_a_piece_further_off_a_body(monkeypatch):
+    """Figure 4579 (held out at stop 42): step 4b moved marker 12's last 53 frames (a
+    2-marker segment) onto marker 22 (another 2-marker segment, hidden then): the voters'
+    partners across a joint that barely moved before, markers of the next segment, found
+    the piece off marker 12 (gain 2.47). On marker 12 the piece sat 1.3 x the measured sd
+    from segment partner 13 and 3.9 x from marker 18 across the joint (both moving as one
+    body with marker 12's other fragments); on marker 22, 9.2 x from segment partner 23.
+    The body veto spared a piece off its body already; now it also refuses a move onto a
+    body the piece is further off (``LESS_OFF_BODY``)."""
+    _, _, ids = _right_then_off(monkeypatch, 4579, "LESS_OFF_BODY", False)
+    assert [12, 22] in ids
+
+
+def test_an_off_body_piece_goes_to_the_one_free_marker(monkeypatch):
+    """Figure 4662 (held out at stop 42): the linkage put marker 13's first 32 frames (a
+    2-marker segment) at the start of marker 4 (another segment; 212.7 mm in 7 frames).
+    On marker 4 the piece sat 5.5 x the measured sd off segment partner 5, which moves as
+    one body with marker 4's other fragments, but no marker fitted it on a judge: marker
+    13's partner 12 is seen with it for 8 frames. Marker 13 is the one marker free over
+    its frames, no track there finds it off, and it goes there now
+    (``ONLY_FREE_MARKER``)."""
+    _, _, ids = _right_then_off(monkeypatch, 4662, "ONLY_FREE_MARKER", False)
+    assert [4, 13] in ids
