@@ -188,7 +188,14 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    4662, held out at stop 42: the linkage put marker 13's first 32 frames at the start of
    marker 4, another segment's, 5.5 x s0 off its segment partner; marker 13's partner is
    seen with the piece for 8 frames, so no judge placed it. Off by the jump test alone,
-   or with a judge at home, it moved right pieces in figures 339, 1306, 2539 and 4465);
+   or with a judge at home, it moved right pieces in figures 339, 1306, 2539 and 4465).
+   In an exchange the misfit itself may go where no track judges it (no judge, off no
+   one-body track) when a piece judged to fit comes back in its place
+   (``EXCHANGE_UNJUDGED``; figure 4251, held out at stop 41: the linkage exchanged the
+   first pieces of marker 13 (a 3-marker segment) and marker 46 (a 2-marker sibling
+   segment); marker 46's piece sat 216.9 x s0 squared off marker 13's partner 12, marker
+   13's fitted marker 13 on both its partners, but marker 46's partner is not seen with
+   marker 46's piece);
 5. the repair can leave a marker as two ids (the swap made its pieces overlap one merged
    marker, so the linkage could not join them): merging (step 3, ``max_distance_m``) is
    repeated on the repaired markers while there are more than the thesis' bound, then one
@@ -1569,6 +1576,8 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
 
 
 MISFIT_EXCHANGES = True  # step 4c: a misfit with no free marker to go to is exchanged
+EXCHANGE_UNJUDGED = True  # step 4c: a misfit may be exchanged onto a marker where no
+#                           track judges it, for a piece that fits (figure 4251)
 ONLY_FREE_MARKER = True  # step 4c: a piece off its body that no judge places goes to the one
 #                          marker free over its frames (figure 4662)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
@@ -1593,20 +1602,36 @@ def _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid_sd, body_sd, b
     over its frames takes: every overlap-free exchange of a run of fragments between a and
     another marker b (``_cross_alternatives``) that moves f to b and after which every
     moved fragment fits the fragments its new marker kept (``_fits`` of ``_misfit``: some
-    judge, every one within ``bound``; and not ``_off_body``) and no change of fragment
-    crosses its gap faster than ``max_step`` (``_paced``). Returns (b, a's fragments, b's
-    fragments) for each."""
-    def takes(new, old, ex):
+    judge, every one within ``bound``; and not ``_off_body``; f itself may be unjudged
+    there, ``_unjudged_on``, when a fragment moves into a, ``EXCHANGE_UNJUDGED``) and no
+    change of fragment crosses its gap faster than ``max_step`` (``_paced``). Returns (b,
+    a's fragments, b's fragments) for each."""
+    def takes(new, old, ex, unjudged=()):
         kept = [h for h in new if h in old]
         return bool(kept) and _paced(X, span, new, max_step) and all(
             _fits_on(X, vis, P, sd_of, h, kept, ex, rigid_sd, body_sd, bound, partner_frames)
+            or (h in unjudged and _unjudged_on(X, vis, P, sd_of, h, kept, ex, rigid_sd,
+                                               body_sd, bound, partner_frames))
             for h in new if h not in old)
 
+    # the misfit itself may go where no track judges it when a piece judged to fit comes
+    # back in its place (``EXCHANGE_UNJUDGED``, figure 4251)
+    own = (f,) if EXCHANGE_UNJUDGED else ()
     return [(b, na, nb) for b in range(len(groups)) if b != a
             for na, nb in _cross_alternatives(span, groups[a], groups[b])
-            if f in nb and takes(na, groups[a], [a, b]) and takes(nb, groups[b], [a, b])
+            if f in nb and takes(na, groups[a], [a, b])
+            and takes(nb, groups[b], [a, b], own if set(na) - set(groups[a]) else ())
             and _tells(X, vis, P, sd_of, f, [h for h in nb if h in groups[b]], [a, b],
                        rigid_sd, bound, partner_frames, at_home)]
+
+
+def _unjudged_on(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound,
+                 partner_frames) -> bool:
+    """No track judges fragment ``f`` on the marker of the fragments ``kept``: no judge of
+    ``_misfit`` and off no one-body track (``_off_body``)."""
+    return (not _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames).size
+            and not _off_body(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound,
+                              partner_frames))
 
 
 def _fits_on(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, partner_frames) -> bool:

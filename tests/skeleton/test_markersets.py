@@ -401,16 +401,15 @@ STOP40_RULES = ("MISFIT_EXCHANGES", "CONTINUITY_EXCHANGES", "CONTINUITY_JOINS")
 WITHOUT_STOP40 = {name: False for name in STOP40_RULES}
 STOP41_RULES = ("SPLIT_JOINS",)
 STOP42_RULES = ("TELLING_JUDGES", "STEP8_JUMPS")
-STOP44_RULES = ("LESS_OFF_BODY", "ONLY_FREE_MARKER")
+STOP44_RULES = ("LESS_OFF_BODY", "ONLY_FREE_MARKER", "EXCHANGE_UNJUDGED")
 
 
 def _before_stop39(monkeypatch):
     """The five repair rules of stop 39, the three of stop 40, step 10, step 4c's
-    telling judges, step 8's jump veto, step 4b's further-off veto and step 4c's one free
-    marker off (skeleton.markersets' flags): they put several of the failures below right
-    as well, a second line of repair,
-    so a test that shows one step's own effect by turning that step off turns them off
-    too."""
+    telling judges, step 8's jump veto, step 4b's further-off veto, step 4c's one free
+    marker and its unjudged exchanges off (skeleton.markersets' flags): they put several
+    of the failures below right as well, a second line of repair, so a test that shows
+    one step's own effect by turning that step off turns them off too."""
     import skeleton.markersets as ms
     for name in (STOP39_RULES + STOP40_RULES + STOP41_RULES + STOP42_RULES
                  + STOP44_RULES):
@@ -841,3 +840,16 @@ def test_an_off_body_piece_goes_to_the_one_free_marker(monkeypatch):
     (``ONLY_FREE_MARKER``)."""
     _, _, ids = _right_then_off(monkeypatch, 4662, "ONLY_FREE_MARKER", False)
     assert [4, 13] in ids
+
+
+def test_a_misfit_is_exchanged_onto_a_marker_where_nothing_judges_it(monkeypatch):
+    """Figure 4251 (held out at stop 41): the linkage exchanged the first pieces of marker
+    13 (a 3-marker segment; 45 frames) and marker 46 (a 2-marker sibling segment; 33
+    frames). Marker 46's piece sat 216.9 x s0 squared off segment partner 12 on marker 13
+    (bound 10.8); marker 13's piece fitted marker 13 on partners 12 and 14 (1.23 and
+    0.25), but marker 46's partner 45 is not seen with marker 46's piece, so no judge
+    placed that piece on marker 46 and step 4c's exchange was refused. A misfit may now go
+    where no track judges it when a piece judged to fit comes back in its place
+    (``EXCHANGE_UNJUDGED``)."""
+    _, _, ids = _right_then_off(monkeypatch, 4251, "EXCHANGE_UNJUDGED", False)
+    assert [13, 46] in ids
