@@ -1540,20 +1540,17 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                     return _tells(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0, bound,
                                   voter_frames, at_home)
 
-                to = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
-                      and _paced(X, span, groups[b] + [f], max_step) and fits_in(b)]
+                free = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
+                        and _paced(X, span, groups[b] + [f], max_step)]
+                to = [b for b in free if fits_in(b)]
                 key = -1.0 if unjudged else float(miss.max()) if miss.size else np.inf
                 if len(to) == 1:
                     moves.append((key, f, a, to[0], None))
-                elif not to and off and ONLY_FREE_MARKER and not at_home and (
-                        _body_sds(vis, P, sd_of, f, kept, [a], one_body * s0,
-                                  voter_frames)[1] > rigid * s0).any() and (free := [
-                        b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
-                        and _paced(X, span, groups[b] + [f], max_step)]) and len(free) == 1 \
-                        and not _misfit(X, vis, P, sd_of, f, groups[free[0]], [a, free[0]],
-                                        rigid * s0, bound, voter_frames).size \
-                        and not _off_body(X, vis, P, sd_of, f, groups[free[0]], [a, free[0]],
-                                          rigid * s0, one_body * s0, bound, voter_frames):
+                elif (not to and off and ONLY_FREE_MARKER and not at_home and len(free) == 1
+                      and (_body_sds(vis, P, sd_of, f, kept, [a], one_body * s0,
+                                     voter_frames)[1] > rigid * s0).any()
+                      and _unjudged_on(X, vis, P, sd_of, f, groups[free[0]], [a, free[0]],
+                                       rigid * s0, one_body * s0, bound, voter_frames)):
                     # off its marker's body (not rigid to a one-body track; no judge finds
                     # it there), and one marker only is free over its frames, with no track
                     # there to judge it (figure 4662)
