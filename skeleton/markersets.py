@@ -140,7 +140,15 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    out at stop 42: marker 12's last 53 frames (a 2-marker segment) went to marker 22 of
    another 2-marker segment, on voters' partners across a joint that barely moved until
    then; at home the piece sat 1.3 x s0 from its segment partner and 3.9 x from a marker
-   across that joint, on marker 22 9.2 x from its segment partner);
+   across that joint, on marker 22 9.2 x from its segment partner) - nor one that makes a
+   moved piece step 4c's misfit (above the jump bound on every judge of its new marker's
+   fragments) where a judge at home finds it fitting (``NO_NEW_MISFITS``; figure 4430,
+   held out at stop 42: marker 12's first 16 frames went to marker 9 of another segment on
+   voters' partners in the next segment, one body with marker 12 after those frames; its
+   segment partners put it at 2.35 and 4.25 x s0 squared at home, bound 10.8, marker 9's
+   at 30.3. A first version, stop 44, also refused the move of a piece no judge placed at
+   home, and lost figure 799, where such a move is a step on the way to the right
+   markers);
 4c. misfit pieces (``_move_misfits``): a piece too short to move a track's sd (figure 617:
    the first 11 frames of a marker whose next piece starts 26 frames later, given to a
    marker of another segment 4.6-9.4 mm from it over those frames) is judged by the jumps
@@ -1199,6 +1207,7 @@ KEPT_TRACK_JUDGES_VOTERS = False   # ... also where the piece moved in is a vote
 
 MISFITS_ARE_BAD = True   # step 4b: a marker holding a misfit piece (step 4c's) is examined
 LESS_OFF_BODY = True     # step 4b: nor a move off one body onto one it is further off
+NO_NEW_MISFITS = True    # step 4b: nor one that makes a fitting piece a misfit (figure 4430)
 
 
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
@@ -1221,7 +1230,9 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
     between them turn by ``turn_margin`` more across fragment changes (``_turning``: a swap
     flips it), nor one that moves a fragment off a one-body track it was rigid to onto one
     it is not (``body_veto``; figures 379 and 799), nor onto a body it is further off than
-    the one it leaves (``LESS_OFF_BODY``; figure 4579).
+    the one it leaves (``LESS_OFF_BODY``; figure 4579), nor one that makes a moved piece
+    step 4c's misfit where a judge at home finds it fitting (``NO_NEW_MISFITS``; figure
+    4430; not where no judge places it at home, figure 799).
     Step 4's looser ``rigid_pair`` (5 x s0) let the veto block a right exchange
     in figure 261: markers of two segments at 4.8 x s0, whose direction turned 99 -> 161 deg
     when put right. Figure 939: the two markers of a 2-marker segment had
@@ -1329,6 +1340,28 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                     return True
             return False
 
+        def misfit_made(g, new, h, ex):
+            """a fragment moves from marker h into marker g (``new``: g's fragments after
+            the exchange) where it is step 4c's misfit (``_misfit`` above the jump bound on
+            every judge of the fragments g keeps) though a judge of the fragments h keeps
+            finds it fitting (figure 4430; a piece no judge places at home may move, figure
+            799: such a move can be a step on the way to the right markers)"""
+            bound = jump_margin * s0 ** 2
+            kept = [f for f in new if f in g]
+            stay = [f for f in h if f not in new]
+            for f in new:
+                if f in g:
+                    continue
+                there = _misfit(X, vis, P, sd_of, f, kept, ex, rigid * s0, bound,
+                                voter_frames)
+                if not (there.size and there.min() > bound):
+                    continue
+                home = _misfit(X, vis, P, sd_of, f, stay, ex, rigid * s0, bound,
+                               voter_frames)
+                if home.size and home.min() <= bound:
+                    return True
+            return False
+
         bad = [m for m, g in enumerate(groups) if any(
             part[f].size and np.nanmax(_sd_to(P[:, part[f]], P[:, m], min_frames)) > rigid * s0
             for f in g if f in part)]
@@ -1373,6 +1406,9 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                             continue
                         if body_veto and (displaced(groups[a], na, groups[b], ex)
                                           or displaced(groups[b], nb, groups[a], ex)):
+                            continue
+                        if NO_NEW_MISFITS and (misfit_made(groups[a], na, groups[b], ex)
+                                               or misfit_made(groups[b], nb, groups[a], ex)):
                             continue
                         best = (gain, a, b, na, nb)
         if best is None:

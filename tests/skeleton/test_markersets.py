@@ -401,15 +401,15 @@ STOP40_RULES = ("MISFIT_EXCHANGES", "CONTINUITY_EXCHANGES", "CONTINUITY_JOINS")
 WITHOUT_STOP40 = {name: False for name in STOP40_RULES}
 STOP41_RULES = ("SPLIT_JOINS",)
 STOP42_RULES = ("TELLING_JUDGES", "STEP8_JUMPS")
-STOP44_RULES = ("LESS_OFF_BODY", "ONLY_FREE_MARKER", "EXCHANGE_UNJUDGED")
+STOP44_RULES = ("LESS_OFF_BODY", "ONLY_FREE_MARKER", "EXCHANGE_UNJUDGED", "NO_NEW_MISFITS")
 
 
 def _before_stop39(monkeypatch):
     """The five repair rules of stop 39, the three of stop 40, step 10, step 4c's
-    telling judges, step 8's jump veto, step 4b's further-off veto, step 4c's one free
-    marker and its unjudged exchanges off (skeleton.markersets' flags): they put several
-    of the failures below right as well, a second line of repair, so a test that shows
-    one step's own effect by turning that step off turns them off too."""
+    telling judges, step 8's jump veto, step 4b's further-off and misfit vetoes, step 4c's
+    one free marker and its unjudged exchanges off (skeleton.markersets' flags): they put
+    several of the failures below right as well, a second line of repair, so a test that
+    shows one step's own effect by turning that step off turns them off too."""
     import skeleton.markersets as ms
     for name in (STOP39_RULES + STOP40_RULES + STOP41_RULES + STOP42_RULES
                  + STOP44_RULES):
@@ -853,3 +853,15 @@ def test_a_misfit_is_exchanged_onto_a_marker_where_nothing_judges_it(monkeypatch
     (``EXCHANGE_UNJUDGED``)."""
     _, _, ids = _right_then_off(monkeypatch, 4251, "EXCHANGE_UNJUDGED", False)
     assert [13, 46] in ids
+
+
+def test_cross_exchange_never_makes_a_piece_a_misfit(monkeypatch):
+    """Figure 4430 (held out at stop 42): step 4b moved marker 12's first 16 frames (a
+    3-marker segment) onto marker 9 (a 2-marker segment; gain 1.18), on voters' partners
+    in the next segment, which moved as one body with marker 12 after those frames. On
+    marker 12 the piece fitted segment partners 11 and 10 (jump sums 2.35 and 4.25 x s0
+    squared, bound 10.8); on marker 9 its one judge, segment partner 8, put it at 30.3:
+    step 4c's misfit, which no step then moved back. Step 4b now makes no exchange that
+    turns a piece judged to fit at home into a misfit (``NO_NEW_MISFITS``)."""
+    _, _, ids = _right_then_off(monkeypatch, 4430, "NO_NEW_MISFITS", False)
+    assert [9, 12] in ids
