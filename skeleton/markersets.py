@@ -196,7 +196,12 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    4662, held out at stop 42: the linkage put marker 13's first 32 frames at the start of
    marker 4, another segment's, 5.5 x s0 off its segment partner; marker 13's partner is
    seen with the piece for 8 frames, so no judge placed it. Off by the jump test alone,
-   or with a judge at home, it moved right pieces in figures 339, 1306, 2539 and 4465).
+   or with a judge at home, it moved right pieces in figures 339, 1306, 2539 and 4465);
+   where several markers are free, to the one of them where no judge or one-body track
+   finds it off when every other has one that does (``ONE_UNJUDGED_FREE``; figure 5221,
+   held out at stop 45: marker 58's last 13 frames, its partner hidden by then, sat on
+   marker 28 of another segment 6.8 and 7.3 x s0 off its partners; of the four markers
+   free over those frames, three had a track finding the piece off).
    In an exchange the misfit itself may go where no track judges it (no judge, off no
    one-body track) when a piece judged to fit comes back in its place
    (``EXCHANGE_UNJUDGED``; figure 4251, held out at stop 41: the linkage exchanged the
@@ -1538,7 +1543,8 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
     where a judge there does not also find it on its own marker (``_tells``) - a piece
     not rigid to a one-body track of its marker, found there by no judge and fitting no
     marker on a judge, to the one marker free over its frames where no judge or one-body
-    track finds it off (``ONLY_FREE_MARKER``); one
+    track finds it off (``ONLY_FREE_MARKER``; of several free markers, the one where
+    nothing finds it off, ``ONE_UNJUDGED_FREE``); one
     move per round (the largest misfit first; a piece no judge sees, first of all), at
     most ``max_rounds``."""
     vis = ~np.isnan(X[..., 0])
@@ -1582,15 +1588,19 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                 key = -1.0 if unjudged else float(miss.max()) if miss.size else np.inf
                 if len(to) == 1:
                     moves.append((key, f, a, to[0], None))
-                elif (not to and off and ONLY_FREE_MARKER and not at_home and len(free) == 1
+                elif (not to and off and ONLY_FREE_MARKER and not at_home
+                      and (len(free) == 1 or ONE_UNJUDGED_FREE)
                       and (_body_sds(vis, P, sd_of, f, kept, [a], one_body * s0,
                                      voter_frames)[1] > rigid * s0).any()
-                      and _unjudged_on(X, vis, P, sd_of, f, groups[free[0]], [a, free[0]],
-                                       rigid * s0, one_body * s0, bound, voter_frames)):
+                      and len(open_ := [b for b in free if _unjudged_on(
+                          X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
+                          one_body * s0, bound, voter_frames)]) == 1):
                     # off its marker's body (not rigid to a one-body track; no judge finds
                     # it there), and one marker only is free over its frames, with no track
-                    # there to judge it (figure 4662)
-                    moves.append((key, f, a, free[0], None))
+                    # there to judge it (figure 4662) - or, of several free markers, the
+                    # others all have a track that finds it off (ONE_UNJUDGED_FREE, figure
+                    # 5221)
+                    moves.append((key, f, a, open_[0], None))
                 elif not to and not unjudged and MISFIT_EXCHANGES:
                     swaps = _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid * s0,
                                               one_body * s0, bound, voter_frames, max_step,
@@ -1613,6 +1623,8 @@ EXCHANGE_UNJUDGED = True  # step 4c: a misfit may be exchanged onto a marker whe
 #                           track judges it, for a piece that fits (figure 4251)
 ONLY_FREE_MARKER = True  # step 4c: a piece off its body that no judge places goes to the one
 #                          marker free over its frames (figure 4662)
+ONE_UNJUDGED_FREE = True  # ... or, of several free markers, to the one where no track
+#                           finds it off (figure 5221)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
 #                          also find the piece on its own (figure 4083)
 

@@ -865,3 +865,15 @@ def test_cross_exchange_never_makes_a_piece_a_misfit(monkeypatch):
     turns a piece judged to fit at home into a misfit (``NO_NEW_MISFITS``)."""
     _, _, ids = _right_then_off(monkeypatch, 4430, "NO_NEW_MISFITS", False)
     assert [9, 12] in ids
+
+
+def test_an_off_body_piece_goes_to_the_one_free_marker_nothing_finds_it_off(monkeypatch):
+    """Figure 5221 (held out at stop 45): the linkage put marker 58's last 13 frames (a
+    2-marker segment whose partner, marker 59, is hidden by then) on marker 28 of a 3-marker
+    segment, after a 14-frame gap. There the piece sat 6.8 and 7.3 x the measured sd off
+    segment partners 30 and 29, which move as one body with marker 28; no judge placed it
+    and no marker fitted it. Four markers were free over its frames (58, 40, 17 and 13), so
+    ``ONLY_FREE_MARKER`` alone did not move it; on three of them a track finds it off, and
+    it now goes to the fourth (``ONE_UNJUDGED_FREE``)."""
+    _, _, ids = _right_then_off(monkeypatch, 5221, "ONE_UNJUDGED_FREE", False)
+    assert [28, 58] in ids
