@@ -201,7 +201,16 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    finds it off when every other has one that does (``ONE_UNJUDGED_FREE``; figure 5221,
    held out at stop 45: marker 58's last 13 frames, its partner hidden by then, sat on
    marker 28 of another segment 6.8 and 7.3 x s0 off its partners; of the four markers
-   free over those frames, three had a track finding the piece off).
+   free over those frames, three had a track finding the piece off). A piece every
+   judge at home finds at other distances (none finds it there), that no marker fits and
+   no exchange takes, goes to the marker free over its frames, with no judge or one-body
+   track finding it off there, that its motion continues best: of two or more such
+   markers, the one whose step-8 continuity cost it raises least, by at least
+   ``CONTINUITY_OPEN_MARGIN`` (2) less than the next and by less than taking it off its
+   marker lowers that marker's (``CONTINUITY_OPEN``; figure 4462, failing since stop 44:
+   marker 30's first 17 frames sat on marker 1 of the root segment, over 1000 x s0
+   squared off its three partners; markers 29 and 30 were free and unjudged, with added
+   costs 3.78 and 1.61, and taking the piece off marker 1 lowered its cost by 2.49).
    In an exchange the misfit itself may go where no track judges it (no judge, off no
    one-body track) when a piece judged to fit comes back in its place
    (``EXCHANGE_UNJUDGED``; figure 4251, held out at stop 41: the linkage exchanged the
@@ -1544,9 +1553,10 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
     not rigid to a one-body track of its marker, found there by no judge and fitting no
     marker on a judge, to the one marker free over its frames where no judge or one-body
     track finds it off (``ONLY_FREE_MARKER``; of several free markers, the one where
-    nothing finds it off, ``ONE_UNJUDGED_FREE``); one
-    move per round (the largest misfit first; a piece no judge sees, first of all), at
-    most ``max_rounds``."""
+    nothing finds it off, ``ONE_UNJUDGED_FREE``) - a misfit no marker fits and no
+    exchange takes, to the free marker that continues it best (``CONTINUITY_OPEN``,
+    ``_continues_best``); one move per round (the largest misfit first; a piece no judge
+    sees, first of all), at most ``max_rounds``."""
     vis = ~np.isnan(X[..., 0])
     span = _spans(vis, groups)
     bound = jump_margin * s0 ** 2
@@ -1607,6 +1617,14 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                                               at_home)
                     if len(swaps) == 1:
                         moves.append((key, f, a, swaps[0][0], swaps[0][1:]))
+                    elif (CONTINUITY_OPEN and not swaps and not at_home and miss.size
+                          and miss.min() > bound and (b := _continues_best(
+                              X, vis, P, sd_of, groups, f, a, free, rigid * s0,
+                              one_body * s0, bound, voter_frames)) is not None):
+                        # every judge at home finds it away, no marker fits it and no
+                        # exchange takes it: the free marker with no track to find it off
+                        # that continues its motion clearly best (figure 4462)
+                        moves.append((key, f, a, b, None))
         if not moves:
             break
         _, f, a, b, swap = max(moves, key=lambda m: m[:3])
@@ -1625,6 +1643,9 @@ ONLY_FREE_MARKER = True  # step 4c: a piece off its body that no judge places go
 #                          marker free over its frames (figure 4662)
 ONE_UNJUDGED_FREE = True  # ... or, of several free markers, to the one where no track
 #                           finds it off (figure 5221)
+CONTINUITY_OPEN = True   # step 4c: a misfit no marker takes goes to the free marker where
+#                          nothing finds it off that continues it best (figure 4462)
+CONTINUITY_OPEN_MARGIN = 2.0   # ... by this much in step 8's continuity cost over the next
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
 #                          also find the piece on its own (figure 4083)
 
@@ -1639,6 +1660,28 @@ def _tells(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames, at_
     _, there = _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
                        with_judges=True)
     return not set(there.tolist()) <= at_home
+
+
+def _continues_best(X, vis, P, sd_of, groups, f, a, free, rigid_sd, body_sd, bound,
+                    partner_frames):
+    """Step 4c's ``CONTINUITY_OPEN``: of the markers ``free`` over fragment ``f``'s frames
+    where no track judges it (``_unjudged_on``), the one whose continuity cost (step 8's
+    ``_continuity_cost``) f raises least, when that is less than taking f off its marker
+    ``a`` lowers it and at least ``CONTINUITY_OPEN_MARGIN`` less than the next such
+    marker's; else None (also with fewer than two such markers). Figure 4462: marker
+    30's first 17 frames, rigid to markers 0, 2 and 3 of the root segment while the chain
+    between barely moved (but at other distances than marker 1), sat on marker 1;
+    markers 29 and 30 were both free and unjudged, and f raised their costs by 3.78 and
+    1.61 (taking it off marker 1 lowered that by 2.49)."""
+    open_ = [b for b in free if _unjudged_on(X, vis, P, sd_of, f, groups[b], [a, b],
+                                             rigid_sd, body_sd, bound, partner_frames)]
+    if len(open_) < 2:
+        return None
+    cost = _continuity_cost(X, vis)
+    (best, b), (second, _) = sorted((cost(groups[b] + [f]) - cost(groups[b]), b)
+                                    for b in open_)[:2]
+    gain = cost(groups[a]) - cost([h for h in groups[a] if h != f])
+    return b if best < gain and second - best >= CONTINUITY_OPEN_MARGIN else None
 
 
 def _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid_sd, body_sd, bound,

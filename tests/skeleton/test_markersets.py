@@ -401,15 +401,17 @@ STOP40_RULES = ("MISFIT_EXCHANGES", "CONTINUITY_EXCHANGES", "CONTINUITY_JOINS")
 WITHOUT_STOP40 = {name: False for name in STOP40_RULES}
 STOP41_RULES = ("SPLIT_JOINS",)
 STOP42_RULES = ("TELLING_JUDGES", "STEP8_JUMPS")
-STOP44_RULES = ("LESS_OFF_BODY", "ONLY_FREE_MARKER", "EXCHANGE_UNJUDGED", "NO_NEW_MISFITS")
+STOP44_RULES = ("LESS_OFF_BODY", "ONLY_FREE_MARKER", "EXCHANGE_UNJUDGED", "NO_NEW_MISFITS",
+                "CONTINUITY_OPEN")
 
 
 def _before_stop39(monkeypatch):
     """The five repair rules of stop 39, the three of stop 40, step 10, step 4c's
     telling judges, step 8's jump veto, step 4b's further-off and misfit vetoes, step 4c's
-    one free marker and its unjudged exchanges off (skeleton.markersets' flags): they put
-    several of the failures below right as well, a second line of repair, so a test that
-    shows one step's own effect by turning that step off turns them off too."""
+    one free marker, its unjudged exchanges and its continuity move off
+    (skeleton.markersets' flags): they put several of the failures below right as well, a
+    second line of repair, so a test that shows one step's own effect by turning that
+    step off turns them off too."""
     import skeleton.markersets as ms
     for name in (STOP39_RULES + STOP40_RULES + STOP41_RULES + STOP42_RULES
                  + STOP44_RULES):
@@ -877,3 +879,15 @@ def test_an_off_body_piece_goes_to_the_one_free_marker_nothing_finds_it_off(monk
     it now goes to the fourth (``ONE_UNJUDGED_FREE``)."""
     _, _, ids = _right_then_off(monkeypatch, 5221, "ONE_UNJUDGED_FREE", False)
     assert [28, 58] in ids
+
+
+def test_a_misfit_no_marker_takes_goes_to_the_free_marker_that_continues_it(monkeypatch):
+    """Figure 4462 (failing since stop 44): the linkage put marker 30's first 17 frames on
+    marker 1 of the root segment; three markers of that segment (0, 2, 3) find the piece
+    at other distances than marker 1 (over 1000 x the measured sd squared), but no marker
+    fits it and no exchange takes it. Markers 29 and 30 (one segment, three joints from
+    the root) are both free over its frames and no track judges it on either; it raises
+    their continuity cost by 3.78 and 1.61, and it now goes to marker 30
+    (``CONTINUITY_OPEN``)."""
+    _, _, ids = _right_then_off(monkeypatch, 4462, "CONTINUITY_OPEN", False)
+    assert [1, 30] in ids
