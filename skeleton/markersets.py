@@ -320,15 +320,22 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    fragment of log(1 + (miss / m)^2): the miss of step 3's constant-velocity lines, m the
    typical miss of one marker across that gap (0.6 mm x gap + 0.009 mm x gap^2, step 3's
    medians). The exchange that lowers the pair's cost most is made when it lowers it by
-   ``CONTINUITY_MARGIN`` (4), no sphere judge vetoes it and no body finds its direction
-   worse by the direction margin. Measured before the margin was chosen (``/tmp``
-   collector, figures 0-299, all merged right: the best alternative of each of the 4026
-   one-body pairs step 8 looks at in the final merge): every one would have mixed
-   markers, and the largest cost they lowered was 2.41 (7 of 4026 at 1 or more). The
-   failures it fixes lowered it by 8.51 (3293, held out at stop 39: marker 43's 18-frame
-   piece on marker 42, 79 and 53 mm off at gaps of 11 and 4 frames, 6.3 and 16.4 mm on
-   its own marker at 7 and 14; spheres 1.51 and 1.35 residual sds), 12.07 (611), 4.18
-   (1210) and 8.92 (1306); 1304's right exchange lowers it by 2.43 only and stays.
+   ``CONTINUITY_EXCHANGE_MARGIN`` (2; 4 until stop 46), no sphere judge vetoes it and no
+   body finds its direction worse by the direction margin. Measured before the margin was
+   first chosen (``/tmp`` collector, figures 0-299, all merged right: the best alternative
+   of each of the 4026 one-body pairs step 8 looks at in the final merge; before the later
+   vetoes): every one would have mixed markers, and the largest cost they lowered was 2.41
+   (7 of 4026 at 1 or more). The failures it fixes lowered it by 8.51 (3293, held out at
+   stop 39: marker 43's 18-frame piece on marker 42, 79 and 53 mm off at gaps of 11 and 4
+   frames, 6.3 and 16.4 mm on its own marker at 7 and 14; spheres 1.51 and 1.35 residual
+   sds), 12.07 (611), 4.18 (1210) and 8.92 (1306); 1304's right exchange lowers it by 2.43
+   only and stayed. At stop 46 a ``/tmp`` screen of figures 0-2699, 4040-4759 and 5480-5719
+   (3660) logged every alternative that reached this test (with the later vetoes: the jump
+   veto below, the direction seen on moved pieces) and lowered the cost by 1 or more: of
+   28, 24 took the frames on a wrong marker to 0 (1.27-12.07) and three (1306, 2.15) from
+   122 to 58; the other, in 1304 at 1.59, moved as many as it mended. The margin went to 2,
+   fixing 1304 and 4385 (held out at stop 42, 3.52); the figures with an alternative at 2-4
+   (1306, 1672, 1773, 2395, 4063) were merged again with it and stay right.
    ``/tmp`` screen with stop 40's three rules (4c's exchanges, step 7b, this), one
    ``merge_fragments`` per figure as ``bench_markersets.py`` builds them: figures 0-1839
    1834 -> 1839/1840 (fixed 339, 611, 1210, 1306, 1371; none lost), 1840-3559 1718/1720
@@ -1972,7 +1979,8 @@ def _sphere_verdict(pts, ga, gb, na, nb, moved):
 
 CONTINUITY_EXCHANGES = True  # step 8: exchanges no sphere or direction finds, by continuity
 STEP8_JUMPS = True  # step 8 makes no exchange that step 4's jump test would undo (4455)
-CONTINUITY_MARGIN = 4.0      # ... the least gain in the continuity cost
+CONTINUITY_MARGIN = 4.0      # steps 7b and 10: the most a join may cost in continuity
+CONTINUITY_EXCHANGE_MARGIN = 2.0   # step 8: the least gain in the continuity cost (1304)
 CONTINUITY_MM_PER_FRAME = (0.6, 0.009)   # a junction's typical miss: a x gap + b x gap^2 (mm)
 
 
@@ -2124,7 +2132,8 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                     if smooth_now is None:
                         smooth_now = continuity(ga) + continuity(gb)
                     smooth = smooth_now - continuity(na) - continuity(nb)
-                    if smooth >= CONTINUITY_MARGIN and (cont is None or smooth > cont[0]):
+                    if (smooth >= CONTINUITY_EXCHANGE_MARGIN
+                            and (cont is None or smooth > cont[0])):
                         cont = (smooth, a, b, na, nb)
         if best is None:
             best = turn

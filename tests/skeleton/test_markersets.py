@@ -767,7 +767,7 @@ def test_a_piece_seen_while_its_partner_is_hidden_is_judged_by_continuity(monkey
     sit about equally far from their joint (3293: spheres 1.51 and 1.35 residual sds), but
     the piece jumps at both ends where it is (3293: 79 and 53 mm at gaps of 11 and 4
     frames; 6.3 and 16.4 mm on its own marker). Step 8 now makes the exchange that lowers
-    the continuity cost by >= 4 (``CONTINUITY_EXCHANGES``)."""
+    the continuity cost by >= 2 (4 until stop 46; ``CONTINUITY_EXCHANGES``)."""
     _, _, ids = _right_then_off(monkeypatch, k, "CONTINUITY_EXCHANGES", False)
     assert [a, b] in ids
 
@@ -891,3 +891,16 @@ def test_a_misfit_no_marker_takes_goes_to_the_free_marker_that_continues_it(monk
     (``CONTINUITY_OPEN``)."""
     _, _, ids = _right_then_off(monkeypatch, 4462, "CONTINUITY_OPEN", False)
     assert [1, 30] in ids
+
+
+@pytest.mark.parametrize("k, a, b", [(1304, 2, 3), (4385, 0, 1)])
+def test_a_one_body_exchange_lowering_continuity_by_two_is_made(monkeypatch, k, a, b):
+    """Figures 1304 (failing since it was first run, stop 26) and 4385 (held out at stop
+    42): a piece of one of two markers moving as one body sits on the other; neither the
+    spheres nor the direction tell them, and the right exchange lowers step 8's continuity
+    cost by 2.43 (1304) and 3.52 (4385), under the margin of 4 it had until stop 46. On
+    the figures screened at stop 46 no alternative that reached the continuity test and
+    lowered the cost by 2 or more was wrong; the margin is 2 now
+    (``CONTINUITY_EXCHANGE_MARGIN``)."""
+    _, _, ids = _right_then_off(monkeypatch, k, "CONTINUITY_EXCHANGE_MARGIN", 4.0)
+    assert [a, b] in ids
