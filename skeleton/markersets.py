@@ -211,6 +211,11 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    marker 30's first 17 frames sat on marker 1 of the root segment, over 1000 x s0
    squared off its three partners; markers 29 and 30 were free and unjudged, with added
    costs 3.78 and 1.61, and taking the piece off marker 1 lowered its cost by 2.49).
+   An off-body piece of ``ONLY_FREE_MARKER``'s kind with several free markers where
+   nothing finds it off goes the same way (``CONTINUITY_OFF_BODY``; figure 2738, failing
+   since stop 38: marker 0's first 23 frames sat on marker 6, 6.1 x s0 off its one-body
+   track; markers 0 and 1 free and unjudged, added costs 0.69 and 4.46; off marker 6,
+   3.66).
    In an exchange the misfit itself may go where no track judges it (no judge, off no
    one-body track) when a piece judged to fit comes back in its place
    (``EXCHANGE_UNJUDGED``; figure 4251, held out at stop 41: the linkage exchanged the
@@ -1609,15 +1614,18 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                       and (len(free) == 1 or ONE_UNJUDGED_FREE)
                       and (_body_sds(vis, P, sd_of, f, kept, [a], one_body * s0,
                                      voter_frames)[1] > rigid * s0).any()
-                      and len(open_ := [b for b in free if _unjudged_on(
+                      and (open_ := [b for b in free if _unjudged_on(
                           X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
-                          one_body * s0, bound, voter_frames)]) == 1):
+                          one_body * s0, bound, voter_frames)])
+                      and (len(open_) == 1 or CONTINUITY_OFF_BODY and (
+                          b := _continues_best(X, vis, groups, f, a, open_)) is not None)):
                     # off its marker's body (not rigid to a one-body track; no judge finds
                     # it there), and one marker only is free over its frames, with no track
                     # there to judge it (figure 4662) - or, of several free markers, the
                     # others all have a track that finds it off (ONE_UNJUDGED_FREE, figure
-                    # 5221)
-                    moves.append((key, f, a, open_[0], None))
+                    # 5221) - or, of several with none, the one that continues it best
+                    # (CONTINUITY_OFF_BODY, figure 2738)
+                    moves.append((key, f, a, open_[0] if len(open_) == 1 else b, None))
                 elif not to and not unjudged and MISFIT_EXCHANGES:
                     swaps = _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid * s0,
                                               one_body * s0, bound, voter_frames, max_step,
@@ -1626,8 +1634,9 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                         moves.append((key, f, a, swaps[0][0], swaps[0][1:]))
                     elif (CONTINUITY_OPEN and not swaps and not at_home and miss.size
                           and miss.min() > bound and (b := _continues_best(
-                              X, vis, P, sd_of, groups, f, a, free, rigid * s0,
-                              one_body * s0, bound, voter_frames)) is not None):
+                              X, vis, groups, f, a, [c for c in free if _unjudged_on(
+                                  X, vis, P, sd_of, f, groups[c], [a, c], rigid * s0,
+                                  one_body * s0, bound, voter_frames)])) is not None):
                         # every judge at home finds it away, no marker fits it and no
                         # exchange takes it: the free marker with no track to find it off
                         # that continues its motion clearly best (figure 4462)
@@ -1653,6 +1662,8 @@ ONE_UNJUDGED_FREE = True  # ... or, of several free markers, to the one where no
 CONTINUITY_OPEN = True   # step 4c: a misfit no marker takes goes to the free marker where
 #                          nothing finds it off that continues it best (figure 4462)
 CONTINUITY_OPEN_MARGIN = 2.0   # ... by this much in step 8's continuity cost over the next
+CONTINUITY_OFF_BODY = True   # ... also an off-body piece with several free markers where
+#                              nothing finds it off (ONLY_FREE_MARKER's case; figure 2738)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
 #                          also find the piece on its own (figure 4083)
 
@@ -1669,19 +1680,19 @@ def _tells(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames, at_
     return not set(there.tolist()) <= at_home
 
 
-def _continues_best(X, vis, P, sd_of, groups, f, a, free, rigid_sd, body_sd, bound,
-                    partner_frames):
-    """Step 4c's ``CONTINUITY_OPEN``: of the markers ``free`` over fragment ``f``'s frames
-    where no track judges it (``_unjudged_on``), the one whose continuity cost (step 8's
-    ``_continuity_cost``) f raises least, when that is less than taking f off its marker
-    ``a`` lowers it and at least ``CONTINUITY_OPEN_MARGIN`` less than the next such
-    marker's; else None (also with fewer than two such markers). Figure 4462: marker
-    30's first 17 frames, rigid to markers 0, 2 and 3 of the root segment while the chain
-    between barely moved (but at other distances than marker 1), sat on marker 1;
-    markers 29 and 30 were both free and unjudged, and f raised their costs by 3.78 and
-    1.61 (taking it off marker 1 lowered that by 2.49)."""
-    open_ = [b for b in free if _unjudged_on(X, vis, P, sd_of, f, groups[b], [a, b],
-                                             rigid_sd, body_sd, bound, partner_frames)]
+def _continues_best(X, vis, groups, f, a, open_):
+    """Step 4c's ``CONTINUITY_OPEN`` and ``CONTINUITY_OFF_BODY``: of the markers ``open_``
+    (free over fragment ``f``'s frames, no track judging it there: ``_unjudged_on``), the
+    one whose continuity cost (step 8's ``_continuity_cost``) f raises least, when that is
+    less than taking f off its marker ``a`` lowers it and at least
+    ``CONTINUITY_OPEN_MARGIN`` less than the next such marker's; else None (also with fewer
+    than two such markers). Figure 4462: marker 30's first 17 frames, rigid to markers 0, 2
+    and 3 of the root segment while the chain between barely moved (but at other distances
+    than marker 1), sat on marker 1; markers 29 and 30 were both free and unjudged, and f
+    raised their costs by 3.78 and 1.61 (taking it off marker 1 lowered that by 2.49).
+    Figure 2738: marker 0's first 23 frames, off the one-body track of marker 6 it sat on,
+    no judge placing it; markers 0 and 1 free and unjudged, added costs 0.69 and 4.46
+    (taking it off marker 6, 3.66)."""
     if len(open_) < 2:
         return None
     cost = _continuity_cost(X, vis)

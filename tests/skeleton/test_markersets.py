@@ -402,7 +402,7 @@ WITHOUT_STOP40 = {name: False for name in STOP40_RULES}
 STOP41_RULES = ("SPLIT_JOINS",)
 STOP42_RULES = ("TELLING_JUDGES", "STEP8_JUMPS")
 STOP44_RULES = ("LESS_OFF_BODY", "ONLY_FREE_MARKER", "EXCHANGE_UNJUDGED", "NO_NEW_MISFITS",
-                "CONTINUITY_OPEN")
+                "CONTINUITY_OPEN", "CONTINUITY_OFF_BODY")
 
 
 def _before_stop39(monkeypatch):
@@ -904,3 +904,15 @@ def test_a_one_body_exchange_lowering_continuity_by_two_is_made(monkeypatch, k, 
     (``CONTINUITY_EXCHANGE_MARGIN``)."""
     _, _, ids = _right_then_off(monkeypatch, k, "CONTINUITY_EXCHANGE_MARGIN", 4.0)
     assert [a, b] in ids
+
+
+def test_an_off_body_piece_goes_to_the_free_marker_that_continues_it(monkeypatch):
+    """Figure 2738 (failing since it was first run, stop 38): the linkage put marker 0's
+    first 23 frames on marker 6, where a track moving as one body with marker 6 finds the
+    piece 6.1 x the measured sd off and no judge places it. Markers 0, 1 and 19 are free
+    over its frames; on 19 a track finds it off, on 0 and 1 none does, so neither
+    ``ONLY_FREE_MARKER`` nor ``ONE_UNJUDGED_FREE`` moved it. It raises marker 0's
+    continuity cost by 0.69 and marker 1's by 4.46 (taking it off marker 6 lowers that by
+    3.66), and now goes to marker 0 (``CONTINUITY_OFF_BODY``)."""
+    _, _, ids = _right_then_off(monkeypatch, 2738, "CONTINUITY_OFF_BODY", False)
+    assert [0, 6] in ids
