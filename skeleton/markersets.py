@@ -1607,6 +1607,13 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                 free = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
                         and _paced(X, span, groups[b] + [f], max_step)]
                 to = [b for b in free if fits_in(b)]
+
+                def open_free():
+                    # the free markers where no track judges f (``_unjudged_on``)
+                    return [b for b in free if _unjudged_on(
+                        X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0, one_body * s0,
+                        bound, voter_frames)]
+
                 key = -1.0 if unjudged else float(miss.max()) if miss.size else np.inf
                 if len(to) == 1:
                     moves.append((key, f, a, to[0], None))
@@ -1614,9 +1621,7 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                       and (len(free) == 1 or ONE_UNJUDGED_FREE)
                       and (_body_sds(vis, P, sd_of, f, kept, [a], one_body * s0,
                                      voter_frames)[1] > rigid * s0).any()
-                      and (open_ := [b for b in free if _unjudged_on(
-                          X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
-                          one_body * s0, bound, voter_frames)])
+                      and (open_ := open_free())
                       and (len(open_) == 1 or CONTINUITY_OFF_BODY and (
                           b := _continues_best(X, vis, groups, f, a, open_)) is not None)):
                     # off its marker's body (not rigid to a one-body track; no judge finds
@@ -1634,9 +1639,7 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                         moves.append((key, f, a, swaps[0][0], swaps[0][1:]))
                     elif (CONTINUITY_OPEN and not swaps and not at_home and miss.size
                           and miss.min() > bound and (b := _continues_best(
-                              X, vis, groups, f, a, [c for c in free if _unjudged_on(
-                                  X, vis, P, sd_of, f, groups[c], [a, c], rigid * s0,
-                                  one_body * s0, bound, voter_frames)])) is not None):
+                              X, vis, groups, f, a, open_free())) is not None):
                         # every judge at home finds it away, no marker fits it and no
                         # exchange takes it: the free marker with no track to find it off
                         # that continues its motion clearly best (figure 4462)
