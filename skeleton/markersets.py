@@ -359,7 +359,11 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    exchanged, merging within ``max_distance_m`` (step 5's strict passes, not its loose one)
    runs again while there are more markers than the bound. ``/tmp`` screen of figures
    0-1839 as for step 8's direction rule: 1818 of 1840 against 1817 before, the same
-   failures but 1833 (fixed); none lost.
+   failures but 1833 (fixed); none lost. Where the two ids are further apart than that,
+   step 7b's continuity join runs again (``JOINS_AFTER_EXCHANGES``; figure 4881, first
+   run at stop 47: step 8's exchange at gain 3.05 put marker 40 together and left marker
+   41's last 153 frames an id alone, 28 frames after its first fragment ends; the join
+   costs 2.87 and is the piece's only one).
 10. split joins (``_split_joins``, ``SPLIT_JOINS``): where the steps above end with more
    markers than the bound, one marker may hold the pieces of two others: its earlier
    fragments belong to one marker and its later ones to another (figure 2539, held out at
@@ -652,6 +656,12 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         if exchanged:
             # step 8 can leave a marker as two ids likewise: merged within max_distance_m
             res = merge_again(res, False)
+            if JOINS_AFTER_EXCHANGES and res.n_markers > first.n_min:
+                # and, further apart, joined by motion continuity as in step 7b (4881)
+                groups = _join_by_continuity(X, [list(g) for g in res.groups], first.n_min,
+                                             max_step)
+                if len(groups) < res.n_markers:
+                    res = _with_groups(X, res, groups)
         if SPLIT_JOINS and res.n_markers > first.n_min:
             groups = _split_joins(X, [list(g) for g in res.groups], first.n_min, min_frames,
                                   max_step=max_step)
@@ -839,6 +849,7 @@ def _join_by_partners(X, groups, min_frames, n_min, rigid=3.0, match=3.0) -> lis
 
 
 CONTINUITY_JOINS = True  # step 7b: markers left as two ids are joined by motion continuity
+JOINS_AFTER_EXCHANGES = True  # step 9: and again where step 8 exchanged (figure 4881)
 
 
 def _join_by_continuity(X, groups, n_min, max_step=np.inf) -> list:

@@ -402,13 +402,14 @@ WITHOUT_STOP40 = {name: False for name in STOP40_RULES}
 STOP41_RULES = ("SPLIT_JOINS",)
 STOP42_RULES = ("TELLING_JUDGES", "STEP8_JUMPS")
 STOP44_RULES = ("LESS_OFF_BODY", "ONLY_FREE_MARKER", "EXCHANGE_UNJUDGED", "NO_NEW_MISFITS",
-                "CONTINUITY_OPEN", "CONTINUITY_OFF_BODY")
+                "CONTINUITY_OPEN", "CONTINUITY_OFF_BODY", "JOINS_AFTER_EXCHANGES")
 
 
 def _before_stop39(monkeypatch):
     """The five repair rules of stop 39, the three of stop 40, step 10, step 4c's
     telling judges, step 8's jump veto, step 4b's further-off and misfit vetoes, step 4c's
-    one free marker, its unjudged exchanges and its continuity move off
+    one free marker, its unjudged exchanges and its continuity moves, and the continuity
+    join after step 8 off
     (skeleton.markersets' flags): they put several of the failures below right as well, a
     second line of repair, so a test that shows one step's own effect by turning that
     step off turns them off too."""
@@ -923,3 +924,15 @@ def test_an_off_body_piece_goes_to_the_free_marker_that_continues_it(monkeypatch
     3.66), and now goes to marker 0 (``CONTINUITY_OFF_BODY``)."""
     _, _, ids = _right_then_off(monkeypatch, 2738, "CONTINUITY_OFF_BODY", False)
     assert [0, 6] in ids
+
+
+def test_a_marker_step_8_leaves_as_two_ids_is_joined_by_continuity(monkeypatch):
+    """Figure 4881 (first run at stop 47): the linkage put marker 41's last 153 frames on
+    marker 40 and left two of marker 40's own fragments an id apart. Step 8's continuity
+    exchange (gain 3.05, over the margin of 2 since stop 46) puts marker 40 together and
+    leaves marker 41's piece an id alone, 28 frames after marker 41's first fragment ends
+    and too far from it for the strict merge. Joining them costs 2.87 in the continuity
+    cost and it is the piece's only join; step 7b's join now runs again where step 8
+    exchanged (``JOINS_AFTER_EXCHANGES``)."""
+    _, _, ids = _right_then_off(monkeypatch, 4881, "JOINS_AFTER_EXCHANGES", False)
+    assert ids.count([41]) == 2
