@@ -1817,9 +1817,12 @@ def _junctions(ra, rb):
 def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
                 partner_sd_weight=0.5, gap_weight_m=1e-4, continuity_m=0.0,
                 continuity_frames=10, continuity_max_gap=45, max_gap=None,
-                max_step=np.inf) -> MarkerSets:
+                max_step=np.inf, order_sd_weight=1.0) -> MarkerSets:
     """One merge: drop short fragments, pose-aligned distances, constrained linkage
-    (``max_step``: no merge that crosses a gap faster than this per frame, m)."""
+    (``max_step``: no merge that crosses a gap faster than this per frame, m). The
+    threshold is judged on distances floored at ``partner_sd_weight`` times the least
+    rigid partner's sd, the joins are ordered by distances floored at ``order_sd_weight``
+    times it (module docstring, steps 2-3)."""
     T, F = X.shape[:2]
     vis = ~np.isnan(X).any(2)
     keep = np.flatnonzero(vis.sum(0) >= min_frames)
@@ -1846,6 +1849,7 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
     frames = [np.flatnonzero(vk[:, i]) for i in range(K)]
     samp = [_samples(f, samples) for f in frames]
     Dk = np.where(overlap, np.inf, np.nan)        # NaN: no common partners to align on
+    Ok = Dk.copy()                                # the same, floored for the order
     for i in range(K):
         for j in range(i + 1, K):
             if overlap[i, j]:
@@ -1867,7 +1871,7 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
             pos = np.cumsum(both, 1)
             pick = both & (pos <= neighbours)
             nk = np.minimum(both.sum(1), neighbours)
-            best = np.inf
+            best = obest = np.inf
             for n in np.unique(nk):
                 sel = nk == n
                 cols = np.nonzero(pick[sel])[1].reshape(-1, n)
@@ -1876,11 +1880,13 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
                 R, t = _kabsch_batch(src, dst)
                 mj = np.einsum("bij,bj->bi", R, Xk[b[sel], j]) + t
                 # an alignment is only as good as its least rigid partner
-                loose = both_sd[rank[cols]].max(1) * partner_sd_weight
-                best = min(best, float(np.maximum(np.linalg.norm(mj - Xk[a[sel], i], axis=1),
-                                                  loose).min()))
-            Dk[i, j] = best
+                least = both_sd[rank[cols]].max(1)
+                miss = np.linalg.norm(mj - Xk[a[sel], i], axis=1)
+                best = min(best, float(np.maximum(miss, least * partner_sd_weight).min()))
+                obest = min(obest, float(np.maximum(miss, least * order_sd_weight).min()))
+            Dk[i, j], Ok[i, j] = best, obest
     Dk = np.fmin(Dk, Dk.T)
+    Ok = np.fmin(Ok, Ok.T)
     D[np.ix_(keep, keep)] = Dk
     # constrained single linkage
     cluster = list(range(K))
@@ -1888,6 +1894,7 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
     seen = {c: vk[:, c].copy() for c in range(K)}
     iu, ju = np.triu_indices(K, 1)
     dist = Dk[iu, ju]
+    odist = Ok[iu, ju]
     rescued = np.zeros(dist.size, bool)
     if continuity_m > 0:
         # motion continuity: a pair whose ends meet within continuity_m across every change
@@ -1896,13 +1903,14 @@ def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
         for e in np.flatnonzero(~overlap[iu, ju]):
             jn = _junctions(runs[iu[e]], runs[ju[e]])
             if jn and all(g <= continuity_max_gap and m <= continuity_m for g, m in jn):
-                dist[e] = np.fmin(dist[e], max(m for g, m in jn))
+                miss = max(m for g, m in jn)
+                dist[e], odist[e] = np.fmin(dist[e], miss), np.fmin(odist[e], miss)
                 rescued[e] = True
     cand = np.flatnonzero((dist <= max_distance_m) | rescued)
     gap = np.array([_gap(frames[iu[e]], frames[ju[e]]) for e in cand], np.float64)
     if max_gap is not None:
         cand, gap = cand[gap <= max_gap], gap[gap <= max_gap]
-    key = dist[cand] + gap_weight_m * gap
+    key = odist[cand] + gap_weight_m * gap
     # each cluster's runs (first frame, last frame, first position, last position)
     runs_of = {c: [(int(f[lo]), int(f[hi - 1]), Xk[f[lo], c], Xk[f[hi - 1], c])
                    for lo, hi in zip(np.r_[0, cut], np.r_[cut, f.size])]
