@@ -17,10 +17,15 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    alignment exact on an articulated figure. An alignment counts at least
    ``partner_sd_weight`` (0.5) times the larger sd of its least rigid partner: partners
    across a joint leave the pose free, and over a long gap a wrong partner could otherwise
-   fit within a few mm;
-3. clustering: constrained single linkage: pairs are merged in order of distance plus
-   ``gap_weight_m`` (0.1 mm) per frame of gap between them (the longer the gap, the less a
-   few mm of residual proves; the order only, the threshold stays on the distance) while
+   fit within a few mm. For the order of the joins (step 3) the floor is
+   ``order_sd_weight`` (1.0) times that sd: held-out figure 5991 (stop 48) joined a
+   marker's fragment, aligned at 3.78 mm on partners across a joint (sd 5.53 mm), to a
+   marker of another segment before that marker's own fragment came at 2.68 mm + 26
+   frames' gap. The threshold keeps the half: with the whole sd there too, figure 2356
+   lost a join of two fragments of one marker to the loose pass (stop 49);
+3. clustering: constrained single linkage: pairs are merged in order of distance (floored
+   at the whole sd, step 2) plus ``gap_weight_m`` (0.1 mm) per frame of gap between them
+   (the longer the gap, the less a few mm of residual proves; the order only, the threshold stays on the distance) while
    the distance is below ``max_distance_m``, never merging clusters seen in the same frame
    (the cannot-link constraint a spectral clustering cannot guarantee), and never below the
    thesis' lower bound on the number of markers (the most fragments seen in one frame).

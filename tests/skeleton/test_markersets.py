@@ -936,3 +936,46 @@ def test_a_marker_step_8_leaves_as_two_ids_is_joined_by_continuity(monkeypatch):
     exchanged (``JOINS_AFTER_EXCHANGES``)."""
     _, _, ids = _right_then_off(monkeypatch, 4881, "JOINS_AFTER_EXCHANGES", False)
     assert ids.count([41]) == 2
+
+
+def _with_merge_weights(monkeypatch, **weights):
+    """step 3's linkage (``_merge_pass``) with other partner-sd weights"""
+    import functools
+
+    import skeleton.markersets as ms
+    monkeypatch.setattr(ms, "_merge_pass", functools.partial(ms._merge_pass, **weights))
+
+
+def _mixed_ids(fig, X, owner):
+    off = merge_fragments(X)
+    assert off.n_markers == fig.n_markers
+    return sorted(i for i in ([sorted({int(owner[f]) for f in g}) for g in off.groups])
+                  if len(i) > 1)
+
+
+def test_joins_on_loose_partners_come_after_those_on_rigid_ones(monkeypatch):
+    """Figure 5991 (held out at stop 48): markers 0-2 of the root segment are hidden
+    together for a while. In the first pass marker 22's fragment over frames 40-71 (another
+    segment) aligns onto marker 2's fragment from frame 76 at 3.78 mm, 5 frames on (key
+    4.28 mm), but only on partners across a joint: the least rigid of them has a distance
+    sd of 5.53 mm. Marker 2's own first fragment (frames 0-50) aligns onto it at 2.68 mm,
+    26 frames on (key 5.28 mm). With the order floored at half that sd (as the threshold
+    is) the wrong join came first and took marker 2's fragment; floored at the whole sd
+    (``order_sd_weight`` 1.0, key 6.03 mm) it comes after the right one."""
+    fig, mo, X, owner = _bench_figure(5991)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    _with_merge_weights(monkeypatch, order_sd_weight=0.5)
+    assert _mixed_ids(fig, X, owner) == [[0, 1], [0, 22], [1, 2], [2, 22]]
+
+
+def test_the_threshold_keeps_half_the_sd_of_the_least_rigid_partner(monkeypatch):
+    """Figure 2356: with the threshold floored at the whole sd of the alignment's least
+    rigid partner (``partner_sd_weight`` 1.0), no strict pass joins marker 16's fragments
+    over frames 249-279 and 302-399, and the loose pass then joins marker 16's first
+    fragment (frames 0-178) to marker 17's last (224-399), the other marker of its
+    2-marker segment. Only the order takes the whole sd (stop 48 screen: the whole sd in
+    the threshold too lost this figure)."""
+    fig, mo, X, owner = _bench_figure(2356)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    _with_merge_weights(monkeypatch, partner_sd_weight=1.0)
+    assert _mixed_ids(fig, X, owner) == [[16, 17], [16, 17]]
