@@ -1819,15 +1819,20 @@ def _junctions(ra, rb):
     return out
 
 
+ORDER_SD_WEIGHT = 1.0  # step 3's order: the whole sd of the least rigid partner (5991)
+
+
 def _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
                 partner_sd_weight=0.5, gap_weight_m=1e-4, continuity_m=0.0,
                 continuity_frames=10, continuity_max_gap=45, max_gap=None,
-                max_step=np.inf, order_sd_weight=1.0) -> MarkerSets:
+                max_step=np.inf, order_sd_weight=None) -> MarkerSets:
     """One merge: drop short fragments, pose-aligned distances, constrained linkage
     (``max_step``: no merge that crosses a gap faster than this per frame, m). The
     threshold is judged on distances floored at ``partner_sd_weight`` times the least
     rigid partner's sd, the joins are ordered by distances floored at ``order_sd_weight``
-    times it (module docstring, steps 2-3)."""
+    (None: ``ORDER_SD_WEIGHT``) times it (module docstring, steps 2-3)."""
+    if order_sd_weight is None:
+        order_sd_weight = ORDER_SD_WEIGHT
     T, F = X.shape[:2]
     vis = ~np.isnan(X).any(2)
     keep = np.flatnonzero(vis.sum(0) >= min_frames)
