@@ -956,19 +956,9 @@ def test_a_marker_step_8_leaves_as_two_ids_is_joined_by_continuity(monkeypatch):
     assert ids.count([41]) == 2
 
 
-def _with_merge_weights(monkeypatch, **weights):
-    """step 3's linkage (``_merge_pass``) with other partner-sd weights"""
-    import functools
-
-    import skeleton.markersets as ms
-    monkeypatch.setattr(ms, "_merge_pass", functools.partial(ms._merge_pass, **weights))
-
-
-def _mixed_ids(fig, X, owner):
-    off = merge_fragments(X)
+def _mixed_ids(fig, off, ids):
     assert off.n_markers == fig.n_markers
-    return sorted(i for i in ([sorted({int(owner[f]) for f in g}) for g in off.groups])
-                  if len(i) > 1)
+    return sorted(i for i in ids if len(i) > 1)
 
 
 def test_joins_on_loose_partners_come_after_those_on_rigid_ones(monkeypatch):
@@ -980,11 +970,8 @@ def test_joins_on_loose_partners_come_after_those_on_rigid_ones(monkeypatch):
     26 frames on (key 5.28 mm). With the order floored at half that sd (as the threshold
     is) the wrong join came first and took marker 2's fragment; floored at the whole sd
     (``order_sd_weight`` 1.0, key 6.03 mm) it comes after the right one."""
-    fig, mo, X, owner = _bench_figure(5991)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    import skeleton.markersets as ms
-    monkeypatch.setattr(ms, "ORDER_SD_WEIGHT", OLD_ORDER_SD_WEIGHT)
-    assert _mixed_ids(fig, X, owner) == [[0, 1], [0, 22], [1, 2], [2, 22]]
+    fig, off, ids = _right_then_off(monkeypatch, 5991, "ORDER_SD_WEIGHT", OLD_ORDER_SD_WEIGHT)
+    assert _mixed_ids(fig, off, ids) == [[0, 1], [0, 22], [1, 2], [2, 22]]
 
 
 def test_the_threshold_keeps_half_the_sd_of_the_least_rigid_partner(monkeypatch):
@@ -994,7 +981,9 @@ def test_the_threshold_keeps_half_the_sd_of_the_least_rigid_partner(monkeypatch)
     fragment (frames 0-178) to marker 17's last (224-399), the other marker of its
     2-marker segment. Only the order takes the whole sd (stop 48 screen: the whole sd in
     the threshold too lost this figure)."""
-    fig, mo, X, owner = _bench_figure(2356)
-    _check(fig, X, owner, merge_fragments(X), mo.markers)
-    _with_merge_weights(monkeypatch, partner_sd_weight=1.0)
-    assert _mixed_ids(fig, X, owner) == [[16, 17], [16, 17]]
+    import functools
+
+    import skeleton.markersets as ms
+    whole = functools.partial(ms._merge_pass, partner_sd_weight=1.0)
+    fig, off, ids = _right_then_off(monkeypatch, 2356, "_merge_pass", whole)
+    assert _mixed_ids(fig, off, ids) == [[16, 17], [16, 17]]
