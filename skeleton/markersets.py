@@ -28,7 +28,8 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    (the longer the gap, the less a few mm of residual proves; the order only, the
    threshold stays on the distance) while the distance is below ``max_distance_m``, never
    merging clusters seen in the same frame (the cannot-link constraint a spectral
-   clustering cannot guarantee), and never below the thesis' lower bound on the number of markers (the most fragments seen in one frame).
+   clustering cannot guarantee), and never below the thesis' lower bound on the number of
+   markers (the most fragments seen in one frame).
    Motion continuity adds candidates the pose alignment misses (a segment with two markers,
    or with its partners hidden, leaves the pose free): a pair is also a candidate, at key
    ``miss`` plus the gap term, when at every change from one to the other (gaps of at most
