@@ -987,3 +987,25 @@ def test_the_threshold_keeps_half_the_sd_of_the_least_rigid_partner(monkeypatch)
     whole = functools.partial(ms._merge_pass, partner_sd_weight=1.0)
     fig, off, ids = _right_then_off(monkeypatch, 2356, "_merge_pass", whole)
     assert _mixed_ids(fig, off, ids) == [[16, 17], [16, 17]]
+
+
+@pytest.mark.parametrize("k, mixed", [(7107, [[15, 53]]), (6555, [[2, 3], [2, 22], [3, 22]])])
+def test_loose_joins_are_ordered_by_continuity_too(monkeypatch, k, mixed):
+    """Figures 7107 and 6555 (held out at stop 48). 7107: the 20-frame end piece of marker 53
+    (a 2-marker segment) aligned at 13.0 mm onto marker 15 of another segment, 5 frames
+    after it ends, but missed marker 15's extrapolated motion by 31.2 mm; its own marker,
+    22 frames on, aligned at 21.0 mm and missed by 20.0 mm (4.1 scaled by the gap). Ordered
+    by the distance alone, the loose pass took the wrong join first. 6555: three markers
+    of two segments hidden together came back in a cycle. Loose joins are ordered by the
+    worse of the distance and the scaled miss (``LOOSE_BY_CONTINUITY``)."""
+    fig, off, ids = _right_then_off(monkeypatch, k, "LOOSE_BY_CONTINUITY", False)
+    assert _mixed_ids(fig, off, ids) == mixed
+
+
+def test_the_loose_order_scales_the_miss_by_the_gap(monkeypatch):
+    """Figure 93: a right loose join across a gap of >= 34 frames of fast motion misses the
+    constant-velocity extrapolation by 169-250 mm. Unscaled (``ACCEL_GAP_FRAMES`` so large
+    that the divisor is 1), that miss orders it after a wrong join and marker 14's and 56's
+    fragments are mixed; divided by (gap / 10 frames)^2 it comes first."""
+    fig, off, ids = _right_then_off(monkeypatch, 93, "ACCEL_GAP_FRAMES", 1e9)
+    assert _mixed_ids(fig, off, ids) == [[14, 56], [14, 56]]
