@@ -135,12 +135,13 @@ def test_swapped_markers_of_a_two_marker_segment_are_repaired(monkeypatch, k):
     come back exchanged after a common gap (no other marker of the segment to align on or
     to judge rigidity with). The repair by segment partners cannot see it; the turning of
     the pair's direction across the fragment changes (a swap flips it) undoes it. (Since
-    stop 50 step 3's order no longer makes figure 48's swap; it is set up with the order
-    before.)"""
+    stop 50 step 3's order no longer makes figure 48's swap, since stop 51 nor the loose
+    passes' order; it is set up with the orders before.)"""
     import skeleton.markersets as ms
     from skeleton.markersets import _repair_swaps
     fig, mo, X, owner = _bench_figure(k)
     monkeypatch.setattr(ms, "ORDER_SD_WEIGHT", OLD_ORDER_SD_WEIGHT)
+    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
     before = merge_fragments(X, repair_swaps=False)
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert len(mixed) == 2                      # the failure this test guards against ...
@@ -305,15 +306,18 @@ def test_marker_split_across_a_long_gap_joined_by_its_partners(monkeypatch):
 
 
 @pytest.mark.parametrize("k", [28, 372])
-def test_short_end_piece_on_a_segment_partner_is_moved_back(k):
+def test_short_end_piece_on_a_segment_partner_is_moved_back(monkeypatch, k):
     """Benchmark figures 28 and 372: the linkage ends a marker with the last 14 / 21 frames
     of another marker of its segment. Over the whole track that piece barely moves the sd
     of the distance to the segment's other markers (step 4's rigidity rule sees no gain);
     the jump of the mean distance at the piece does: step 4's jump rule moves it back (and,
     in figure 372, step 4b no longer moves it again on partners rigid only over its
-    voters' frames)."""
+    voters' frames). Since stop 51 the loose passes' order no longer makes 372's piece; it
+    is set up with the order before."""
+    import skeleton.markersets as ms
     from skeleton.markersets import _repair_swaps
     fig, mo, X, owner = _bench_figure(k)
+    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
     before = merge_fragments(X, repair_swaps=False)
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert len(mixed) == 1                      # the failure this test guards against ...
@@ -324,6 +328,8 @@ def test_short_end_piece_on_a_segment_partner_is_moved_back(k):
     kept = _repair_swaps(X, [list(g) for g in before.groups], MIN_FRAMES, 1.0,
                          jump_margin=np.inf)    # ... which the repair without jumps keeps
     assert any(len({int(owner[f]) for f in g}) > 1 for g in kept)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.undo()
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
@@ -514,15 +520,20 @@ def test_piece_off_a_rigid_body_moves_to_the_marker_it_fits(monkeypatch, k, mark
     assert fig.marker_segment[marker] != fig.marker_segment[other]
 
 
-def test_cross_exchange_may_move_a_piece_already_off_its_body():
+def test_cross_exchange_may_move_a_piece_already_off_its_body(monkeypatch):
     """Benchmark figure 799: the linkage mixes three markers of three segments; step 4b puts
     them right in two exchanges, the first of which moves a piece that was already off its
     body onto another wrong marker. The veto of a move off a rigid body (figure 379) first
-    blocked that exchange whatever the piece's old place, and the three stayed mixed."""
+    blocked that exchange whatever the piece's old place, and the three stayed mixed.
+    (Since stop 51 the loose passes' order mixes only two; set up with the order before.)"""
+    import skeleton.markersets as ms
     fig, mo, X, owner = _bench_figure(799)
+    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
     before = merge_fragments(X, repair_swaps=False)
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert len(mixed) == 3                      # the failure this test guards against
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
+    monkeypatch.undo()
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
@@ -583,7 +594,10 @@ def test_two_markers_hidden_together_are_told_apart_by_their_joint_spheres(monke
     assert seg[pair[0]] == seg[pair[1]] and (seg == seg[pair[0]]).sum() == 2
     _check(fig, X, owner, merge_fragments(X), mo.markers)
     # without step 8 the two markers stay mixed (the failure guarded against; since stop 36
-    # the speed gate keeps 221's piece off the other marker too, so it is off here)
+    # the speed gate keeps 221's piece off the other marker too, so it is off here, and
+    # since stop 51 the loose passes' order, so it is set as before)
+    import skeleton.markersets as ms
+    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", merge_kw=NO_GATE,
                        max_rounds=0) == [pair]
 
@@ -661,8 +675,10 @@ def test_no_merge_crosses_a_gap_faster_than_any_fragment_moves(monkeypatch):
     import skeleton.markersets as ms
     fig, mo, X, owner = _bench_figure(1026)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
-    # since stop 46 step 4c's continuity move puts the wrong piece right again
+    # since stop 46 step 4c's continuity move puts the wrong piece right again, and since
+    # stop 51 the loose passes' order does not make it
     monkeypatch.setattr(ms, "CONTINUITY_OFF_BODY", False)
+    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
     off = merge_fragments(X, speed_gate=None)
     assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
 
@@ -864,9 +880,14 @@ def test_an_off_body_piece_goes_to_the_one_free_marker(monkeypatch):
     one body with marker 4's other fragments, but no marker fitted it on a judge: marker
     13's partner 12 is seen with it for 8 frames. Marker 13 is the one marker free over
     its frames, no track there finds it off, and it goes there now
-    (``ONLY_FREE_MARKER``)."""
-    _, _, ids = _right_then_off(monkeypatch, 4662, "ONLY_FREE_MARKER", False)
+    (``ONLY_FREE_MARKER``). Since stop 51 the loose passes' order does not make the piece;
+    it is set up with the order before."""
+    _, _, ids = _right_then_off(monkeypatch, 4662, "ONLY_FREE_MARKER", False,
+                                LOOSE_BY_CONTINUITY=False)
     assert [4, 13] in ids
+    monkeypatch.undo()
+    fig, mo, X, owner = _bench_figure(4662)
+    _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
 def test_a_misfit_is_exchanged_onto_a_marker_where_nothing_judges_it(monkeypatch):
