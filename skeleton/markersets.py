@@ -402,6 +402,24 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    marker 27's piece onto marker 26 (same segment, hidden 9 frames before it), 3.04, is
    off marker 26's body.
 
+11. sphere joins (``_join_by_spheres``, ``SPHERE_JOINS``): where the steps above still end
+   with more markers than the bound, a short piece may have no continuation that motion
+   or pose alignment can judge (figure 8203, held out at stop 51: marker 21's first 11
+   frames, seen while the other two markers of its segment are hidden, lie 126.5 mm
+   pose-aligned on partners across a joint and 90 mm off the motion from their own marker
+   38 frames on). In the frame of each body (step 8's: >= 3 tracks moving as one, >= 100
+   frames) a marker turning about its joint with that body keeps a sphere (Kasa fit, rms
+   <= 1.5 x s0): two markers that never share a frame are joined when the one with fewer
+   points in a body lies on the other's sphere within ``SPHERE_FIT_Z`` (3) x its rms on
+   some body and off it on none (``SPHERE_MISFIT_Z``, 6), and every other marker either of
+   them could join is off, by >= 6 x the rms, on some body; the best fit first, none that
+   crosses a gap faster than step 3's gate. On 8203 the piece lies on its marker's sphere
+   about the parent at 1.7 x its rms and 89 and 172 x off the two other markers' (113 and
+   222 mm). On the benchmark's figures (400 frames, 1-3 gaps of 3-39 frames per marker,
+   fragments < 10 frames dropped: at most 3 of the <= 4 runs) every marker is seen in
+   >= 400 - 117 - 27 = 256 frames, so two markers share >= 112 frames and the step finds
+   nothing to join on a figure merged right: it can only change figures left wrong.
+
 The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
 (1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on
 which the weights were chosen) 32/40 merged exactly without either, 33/40 with the floor,
@@ -589,7 +607,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8, 9 and 10 of the module
+    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8, 9, 10 and 11 of the module
     docstring
     (``swap_margin``: the least gain in the rigidity cost for which fragments change
     marker).
@@ -685,6 +703,11 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         if SPLIT_JOINS and res.n_markers > first.n_min:
             groups = _split_joins(X, [list(g) for g in res.groups], first.n_min, min_frames,
                                   max_step=max_step)
+            if len(groups) < res.n_markers:
+                res = _with_groups(X, res, groups)
+        if SPHERE_JOINS and res.n_markers > first.n_min:
+            groups = _join_by_spheres(X, [list(g) for g in res.groups], first.n_min,
+                                      min_frames, max_step=max_step)
             if len(groups) < res.n_markers:
                 res = _with_groups(X, res, groups)
     return res
@@ -984,6 +1007,109 @@ def _split_joins(X, groups, n_min, min_frames, max_step=np.inf, rigid=3.0, one_b
         groups[b] = groups[b] + g[:cut]
         groups[c] = groups[c] + g[cut:]
         del groups[a]
+    return groups
+
+
+SPHERE_JOINS = True  # step 11: a marker left as two ids is joined where joint spheres judge
+SPHERE_FIT_Z = 3.0      # ... the piece fits a marker's sphere within this x the sphere's rms
+SPHERE_MISFIT_Z = 6.0   # ... and is off every other candidate's by at least this x its rms
+SPHERE_POINTS = 5       # ... on at least this many of the piece's frames in the body
+
+
+def _sphere_fit(y) -> tuple:
+    """(centre, radius, rms residual) of points ``y`` (N, 3): Kasa's algebraic fit."""
+    A = np.c_[2 * y, np.ones(len(y))]
+    sol = np.linalg.lstsq(A, (y ** 2).sum(1), rcond=None)[0]
+    c = sol[:3]
+    r = float(np.sqrt(max(sol[3] + c @ c, 0.0)))
+    return c, r, float(np.sqrt(np.mean((np.linalg.norm(y - c, axis=1) - r) ** 2)))
+
+
+def _join_by_spheres(X, groups, n_min, min_frames, max_step=np.inf, body_sd=1.5,
+                     body_frames=100, fit_rms=1.5) -> list:
+    """Step 11 (module docstring): while there are more markers than ``n_min``, two
+    markers that never share a frame are joined where the joint spheres decide: in the
+    frame of a body (``_bodies``: >= 3 tracks moving as one, >= ``body_frames`` frames) the
+    marker with more points there keeps a sphere about its joint (Kasa fit, rms <=
+    ``fit_rms`` x s0: a neighbour across one joint) and the other's points (>=
+    ``SPHERE_POINTS``) lie on it within ``SPHERE_FIT_Z`` x that rms, on no body off it,
+    while every other marker either of the two could join (no common frame, paced) has
+    their points off its sphere by >= ``SPHERE_MISFIT_Z`` x its rms on some body. The
+    best-fitting join first, none that crosses a gap faster than ``max_step`` per frame."""
+    vis = ~np.isnan(X[..., 0])
+    groups = [list(g) for g in groups]
+    span = _spans(vis, groups)
+    while len(groups) > n_min:
+        P = _tracks(X, groups)
+        S, s0 = _pair_sd(P, min_frames)
+        if not s0 > 0:
+            return groups
+        seen = ~np.isnan(P[..., 0])
+        common = seen.T.astype(np.int64) @ seen.astype(np.int64)
+        with np.errstate(invalid="ignore"):
+            one = (S <= body_sd * s0) & (common >= body_frames)
+        frames = {b: _body_frame(P, b) for b in _bodies(one, S)}
+        frames = {b: v for b, v in frames.items() if v[0].size >= body_frames}
+        M = len(groups)
+        free = [[b for b in range(M) if b != a and not common[a, b]
+                 and _paced(X, span, groups[a] + groups[b], max_step)] for a in range(M)]
+        if not any(free) or not frames:
+            return groups
+        in_body, spheres = {}, {}
+
+        def points(body, m):
+            if (body, m) not in in_body:
+                fr, R, t = frames[body]
+                x = P[fr, m]
+                ok = ~np.isnan(x[:, 0])
+                in_body[body, m] = np.einsum("bij,bj->bi", R[ok], x[ok]) + t[ok]
+            return in_body[body, m]
+
+        def judge(a, b) -> tuple:
+            """(best z where the fewer points lie on the other's sphere, worst z): z the
+            rms of their radius residual in units of the sphere's rms; NaN unjudged."""
+            zs = []
+            for body in frames:
+                if a in body or b in body:
+                    continue
+                ya, yb = points(body, a), points(body, b)
+                if len(ya) > len(yb):
+                    ya, yb = yb, ya
+                if len(yb) < 50 or len(ya) < SPHERE_POINTS:
+                    continue
+                key = (body, b if len(points(body, b)) >= len(points(body, a)) else a)
+                if key not in spheres:
+                    spheres[key] = _sphere_fit(yb)
+                c, r, rms = spheres[key]
+                if not rms <= fit_rms * s0:
+                    continue                 # not a neighbour across one joint
+                res = np.linalg.norm(ya - c, axis=1) - r
+                zs.append(float(np.sqrt(np.mean(res ** 2))) / max(rms, 1e-12))
+            return (min(zs), max(zs)) if zs else (np.nan, np.nan)
+
+        verdict = {}
+        for a in range(M):
+            for b in free[a]:
+                if (b, a) not in verdict:
+                    verdict[a, b] = verdict[b, a] = judge(a, b)
+        best = None
+        for a in range(M):
+            for b in free[a]:
+                if b < a:
+                    continue
+                lo, hi = verdict[a, b]
+                if not (lo <= SPHERE_FIT_Z and hi < SPHERE_MISFIT_Z):
+                    continue
+                rivals = [(a, c) for c in free[a] if c != b] + [(b, c) for c in free[b]
+                                                                if c != a]
+                if all(verdict[r][1] >= SPHERE_MISFIT_Z for r in rivals) and (
+                        best is None or lo < best[0]):
+                    best = (lo, a, b)
+        if best is None:
+            return groups
+        _, a, b = best
+        groups[a] = groups[a] + groups[b]
+        del groups[b]
     return groups
 
 

@@ -1030,3 +1030,32 @@ def test_the_loose_order_scales_the_miss_by_the_gap(monkeypatch):
     fragments are mixed; divided by (gap / 10 frames)^2 it comes first."""
     fig, off, ids = _right_then_off(monkeypatch, 93, "ACCEL_GAP_FRAMES", 1e9)
     assert _mixed_ids(fig, off, ids) == [[14, 56], [14, 56]]
+
+
+def test_a_piece_left_apart_is_joined_on_its_joint_sphere(monkeypatch):
+    """Figure 8203 (held out, first run at stop 51): the first 11 frames of marker 21 (a
+    3-marker segment whose other two markers are hidden then) stay an id alone: 38 frames
+    on, their own marker is 126.5 mm away pose-aligned (on partners across a joint) and
+    misses their extrapolated motion by 90 mm, so no step of 3-10 joins them. In the frame
+    of the parent segment (3 markers seen in 10 of the 11 frames) the piece lies on its
+    marker's sphere about the joint (rms 2.2 mm, 1.7 x the sphere's own) and 113 and 222 mm
+    off those of the two other markers it could join: step 11 (``SPHERE_JOINS``) joins it."""
+    fig, off, ids = _right_then_off(monkeypatch, 8203, "SPHERE_JOINS", False)
+    assert off.n_markers == fig.n_markers + 1
+    assert all(len(i) == 1 for i in ids) and ids.count([21]) == 2
+
+
+def test_the_sphere_fit_recovers_a_centre_and_radius():
+    """``_sphere_fit`` (step 11): points on a 30-degree cap of a 0.3 m sphere with 1 mm
+    noise give back the centre within 20 mm, the radius within 20 mm and an rms residual
+    near the noise."""
+    from skeleton.markersets import _sphere_fit
+    g = np.random.default_rng(3)
+    u = g.normal(size=(400, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u = u[u[:, 2] > np.cos(np.radians(30))]
+    c0 = np.array([0.1, -0.2, 0.5])
+    y = c0 + 0.3 * u + g.normal(0, 1e-3, u.shape)
+    c, r, rms = _sphere_fit(y)
+    assert np.linalg.norm(c - c0) < 0.02 and abs(r - 0.3) < 0.02
+    assert 0.5e-3 < rms < 1.2e-3
