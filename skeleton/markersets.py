@@ -637,34 +637,11 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
         raise ValueError(f"speed_gate={speed_gate!r}, expected > 0 or None")
     if neighbours < 3:
         raise ValueError(f"neighbours={neighbours!r}, expected >= 3 (a pose needs 3 points)")
-    max_step = np.inf
-    if speed_gate is not None:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            steps = np.linalg.norm(np.diff(X, axis=0), axis=2)
-        if np.isfinite(steps).any():
-            max_step = speed_gate * float(np.nanmax(steps))
+    max_step = _max_step(X, speed_gate)
     first = _merge_pass(X, min_frames, max_distance_m, n_markers, samples, neighbours,
                         continuity_m=continuity_m, max_gap=defer_gap, max_step=max_step)
-
-    def merge_again(res, loose_last, rounds=max_passes + 1, max_gap=None):
-        # strict passes on the merged markers while they merge and there are more markers
-        # than the bound, then (``loose_last``) loose ones likewise
-        loose = False
-        for _ in range(rounds):
-            if res.n_markers <= first.n_min:
-                break
-            nxt = _merge_pass(res.positions, 1, loose_distance_m if loose else max_distance_m,
-                              n_markers, samples, neighbours, continuity_m=continuity_m,
-                              max_gap=max_gap, max_step=max_step, loose=loose)
-            if nxt.n_markers == res.n_markers:
-                if loose or not loose_last:
-                    break
-                loose = True
-                continue
-            res = _regroup(X, res, nxt)
-        return res
-
+    merge_again = _merge_again(X, first.n_min, max_distance_m, loose_distance_m, n_markers,
+                               samples, neighbours, continuity_m, max_step, max_passes)
     res = first
     if defer_gap is not None:
         res = merge_again(res, False, rounds=max_passes, max_gap=defer_gap)
@@ -680,37 +657,100 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
             continue
         res = _regroup(X, res, nxt)
     if repair_swaps and res.n_markers >= 3:
-        res = _with_groups(X, res, _repair_swaps(X, [list(g) for g in res.groups],
-                                                 min_frames, swap_margin, max_step=max_step))
-        # a marker left as two ids beside a swap (the swap made them overlap) can merge now
-        res = merge_again(res, True)
-        groups = _join_by_partners(X, [list(g) for g in res.groups], min_frames, first.n_min)
-        groups = _two_of_three(X, groups, min_frames, first.n_min)
-        if CONTINUITY_JOINS:
-            groups = _join_by_continuity(X, groups, first.n_min, max_step)
-        groups, exchanged = _sphere_exchanges(X, groups, min_frames, max_step=max_step)
-        if len(groups) < res.n_markers or exchanged:
-            res = _with_groups(X, res, groups)
-        if exchanged:
-            # step 8 can leave a marker as two ids likewise: merged within max_distance_m
-            res = merge_again(res, False)
-            if JOINS_AFTER_EXCHANGES and res.n_markers > first.n_min:
-                # and, further apart, joined by motion continuity as in step 7b (4881)
-                groups = _join_by_continuity(X, [list(g) for g in res.groups], first.n_min,
-                                             max_step)
-                if len(groups) < res.n_markers:
-                    res = _with_groups(X, res, groups)
-        if SPLIT_JOINS and res.n_markers > first.n_min:
-            groups = _split_joins(X, [list(g) for g in res.groups], first.n_min, min_frames,
-                                  max_step=max_step)
-            if len(groups) < res.n_markers:
-                res = _with_groups(X, res, groups)
-        if SPHERE_JOINS and res.n_markers > first.n_min:
-            groups = _join_by_spheres(X, [list(g) for g in res.groups], first.n_min,
-                                      min_frames, max_step=max_step)
-            if len(groups) < res.n_markers:
-                res = _with_groups(X, res, groups)
+        res = _repairs(X, res, first.n_min, min_frames, swap_margin, max_step, merge_again)
     return res
+
+
+def _max_step(X, speed_gate) -> float:
+    """Step 3's speed gate: ``speed_gate`` x the fastest frame-to-frame step of any
+    fragment of ``X`` (m per frame); inf where ``speed_gate`` is None."""
+    if speed_gate is None:
+        return np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        steps = np.linalg.norm(np.diff(X, axis=0), axis=2)
+    return speed_gate * float(np.nanmax(steps)) if np.isfinite(steps).any() else np.inf
+
+
+def _merge_again(X, n_min, max_distance_m, loose_distance_m, n_markers, samples, neighbours,
+                 continuity_m, max_step, max_passes):
+    """``merge_again(res, loose_last, rounds, max_gap)``: strict merge passes on the merged
+    markers of ``res`` while they merge and there are more markers than ``n_min``, then
+    (``loose_last``) loose ones likewise (``merge_fragments``)."""
+    def merge_again(res, loose_last, rounds=max_passes + 1, max_gap=None):
+        loose = False
+        for _ in range(rounds):
+            if res.n_markers <= n_min:
+                break
+            nxt = _merge_pass(res.positions, 1, loose_distance_m if loose else max_distance_m,
+                              n_markers, samples, neighbours, continuity_m=continuity_m,
+                              max_gap=max_gap, max_step=max_step, loose=loose)
+            if nxt.n_markers == res.n_markers:
+                if loose or not loose_last:
+                    break
+                loose = True
+                continue
+            res = _regroup(X, res, nxt)
+        return res
+    return merge_again
+
+
+def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
+             merge_again) -> MarkerSets:
+    """Steps 4-11 (module docstring) on the linkage's markers ``res``."""
+    res = _with_groups(X, res, _repair_swaps(X, [list(g) for g in res.groups],
+                                             min_frames, swap_margin, max_step=max_step))
+    # a marker left as two ids beside a swap (the swap made them overlap) can merge now
+    res = merge_again(res, True)
+    groups = _join_by_partners(X, [list(g) for g in res.groups], min_frames, n_min)
+    groups = _two_of_three(X, groups, min_frames, n_min)
+    if CONTINUITY_JOINS:
+        groups = _join_by_continuity(X, groups, n_min, max_step)
+    groups, exchanged = _sphere_exchanges(X, groups, min_frames, max_step=max_step)
+    if len(groups) < res.n_markers or exchanged:
+        res = _with_groups(X, res, groups)
+    if exchanged:
+        # step 8 can leave a marker as two ids likewise: merged within max_distance_m
+        res = merge_again(res, False)
+        if JOINS_AFTER_EXCHANGES and res.n_markers > n_min:
+            # and, further apart, joined by motion continuity as in step 7b (4881)
+            groups = _join_by_continuity(X, [list(g) for g in res.groups], n_min, max_step)
+            if len(groups) < res.n_markers:
+                res = _with_groups(X, res, groups)
+    if SPLIT_JOINS and res.n_markers > n_min:
+        groups = _split_joins(X, [list(g) for g in res.groups], n_min, min_frames,
+                              max_step=max_step)
+        if len(groups) < res.n_markers:
+            res = _with_groups(X, res, groups)
+    if SPHERE_JOINS and res.n_markers > n_min:
+        groups = _join_by_spheres(X, [list(g) for g in res.groups], n_min, min_frames,
+                                  max_step=max_step)
+        if len(groups) < res.n_markers:
+            res = _with_groups(X, res, groups)
+    return res
+
+
+def _repairs_from(X, groups, min_frames: int = 10, max_distance_m: float = 0.012,
+                  n_markers=None, samples: int = 12, neighbours: int = 3, max_passes: int = 4,
+                  loose_distance_m: float = 0.1, swap_margin: float = 1.0,
+                  continuity_m: float = 0.01, speed_gate=1.5) -> MarkerSets:
+    """Steps 4-11 of ``merge_fragments`` (its defaults) resumed from the linkage's fragment
+    ``groups`` (those entering step 4): what ``merge_fragments(X)`` returns when steps 1-3
+    gave these groups. For screens of later steps (``benchmarks/screen_markersets.py``)."""
+    X = np.asarray(X, np.float64)
+    vis = ~np.isnan(X[..., 0])
+    keep = vis.sum(0) >= min_frames
+    n_min = int(vis[:, keep].sum(1).max()) if keep.any() else 0
+    start = MarkerSets(positions=np.zeros((X.shape[0], 0, 3)), groups=(), n_min=n_min,
+                       dropped=tuple(int(f) for f in np.flatnonzero(~keep)),
+                       distance=np.full((X.shape[1],) * 2, np.nan))
+    res = _with_groups(X, start, [list(g) for g in groups])
+    max_step = _max_step(X, speed_gate)
+    merge_again = _merge_again(X, n_min, max_distance_m, loose_distance_m, n_markers, samples,
+                               neighbours, continuity_m, max_step, max_passes)
+    if res.n_markers < 3:
+        return res
+    return _repairs(X, res, n_min, min_frames, swap_margin, max_step, merge_again)
 
 
 def _partner_frames(X, vis, P, frs, others, min_frames, rigid_sd) -> tuple:

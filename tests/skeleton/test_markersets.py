@@ -1059,3 +1059,29 @@ def test_the_sphere_fit_recovers_a_centre_and_radius():
     c, r, rms = _sphere_fit(y)
     assert np.linalg.norm(c - c0) < 0.02 and abs(r - 0.3) < 0.02
     assert 0.5e-3 < rms < 1.2e-3
+
+
+@pytest.mark.parametrize("k", [7, 26])
+def test_the_repairs_resume_from_the_linkage_groups(k):
+    """``_repairs_from`` (the screens' cache, ``benchmarks/screen_markersets.py``): steps
+    4-11 resumed from the groups entering step 4 give what ``merge_fragments`` gives, to
+    the last bit of the merged positions."""
+    import skeleton.markersets as ms
+    fig, mo, X, owner = _bench_figure(k)
+    seen = []
+    orig = ms._repair_swaps
+
+    def record(X_, groups, *a, **kw):
+        seen.append([list(g) for g in groups])
+        return orig(X_, groups, *a, **kw)
+    ms._repair_swaps = record
+    try:
+        full = merge_fragments(X)
+    finally:
+        ms._repair_swaps = orig
+    assert len(seen) == 1
+    again = ms._repairs_from(X, seen[0])
+    assert again.groups == full.groups and again.n_min == full.n_min
+    assert again.dropped == full.dropped
+    np.testing.assert_array_equal(again.positions, full.positions)
+    _check(fig, X, owner, again, mo.markers)

@@ -1,0 +1,141 @@
+"""Screen of the marker-set merge (issue 6, point 1) on the benchmark figures, one
+``merge_fragments(X)`` per figure as ``bench_markersets.py`` builds them (``_bench_figure(k)``
+of ``tests/skeleton/test_markersets.py``: seed 1000 + k, 400 frames, 1 mm noise, 1-3 gaps of
+3-39 frames per marker, 5 ghosts).
+
+A rule of steps 4-11 of ``skeleton/markersets.py`` does not change what steps 1-3 (the
+linkage, two thirds of the merge time) give, so their groups can be cached: with ``--cache
+FILE`` (JSON lines, gzip where the name ends in .gz) a figure found there is resumed at step 4
+(``skeleton.markersets._repairs_from``), and a figure not found there is merged in full and
+its step-4 groups appended. The cache holds for as long as steps 1-3, ``hw_sim`` and the figure
+builder are unchanged; ``--check`` merges cached figures in full too and reports any
+difference (a stale cache).
+
+Usage: python benchmarks/screen_markersets.py FIGURES OUT [--cache FILE] [--check]
+       [--set NAME=VALUE ...]
+FIGURES is FIRST-LAST or a comma list; OUT gets one line per figure (appended):
+``k OK|BAD pure=.. one=.. n=.. nmin=.. seconds from=cache|full``. ``--set`` sets a module
+constant of skeleton.markersets first (``--set SPHERE_JOINS=False``; Python literals).
+Prints the count right at the end.
+"""
+from __future__ import annotations
+
+import ast
+import gzip
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests" / "skeleton"))
+
+import skeleton.markersets as ms  # noqa: E402
+
+
+def figures(spec: str) -> list[int]:
+    if "," in spec:
+        return [int(k) for k in spec.split(",") if k]
+    a, _, b = spec.partition("-")
+    return list(range(int(a), int(b or a) + 1))
+
+
+def _open(path: Path, mode: str):
+    return gzip.open(path, mode + "t") if path.suffix == ".gz" else open(path, mode)
+
+
+def load_cache(path: Path | None) -> dict[int, list]:
+    out: dict[int, list] = {}
+    if path is not None and path.exists():
+        with _open(path, "r") as f:
+            for line in f:
+                d = json.loads(line)
+                out[int(d["k"])] = d["pre_repair"]
+    return out
+
+
+def full_merge(X):
+    """merge_fragments(X) and the groups entering step 4 (None where the repairs do not
+    run: fewer than 3 markers)."""
+    seen = []
+    orig = ms._repair_swaps
+
+    def record(X_, groups, *a, **kw):
+        if not seen:
+            seen.append([list(map(int, g)) for g in groups])
+        return orig(X_, groups, *a, **kw)
+    ms._repair_swaps = record
+    try:
+        res = ms.merge_fragments(X)
+    finally:
+        ms._repair_swaps = orig
+    return res, (seen[0] if seen else None)
+
+
+def judge(fig, owner, groups) -> tuple[bool, bool]:
+    """(every id holds one physical marker, every marker has exactly one id)"""
+    pure = all(len({int(owner[f]) for f in g}) == 1 for g in groups)
+    ids = [int(owner[g[0]]) for g in groups]
+    return pure, len(ids) == len(set(ids)) == fig.n_markers
+
+
+def main(argv: list[str]) -> int:
+    args = list(argv)
+    cache_path, check, sets = None, False, []
+    if "--cache" in args:
+        i = args.index("--cache")
+        cache_path = Path(args[i + 1])
+        del args[i:i + 2]
+    if "--check" in args:
+        args.remove("--check")
+        check = True
+    while "--set" in args:
+        i = args.index("--set")
+        sets.append(args[i + 1])
+        del args[i:i + 2]
+    if len(args) != 2:
+        print(__doc__)
+        return 2
+    for s in sets:
+        name, _, value = s.partition("=")
+        if not hasattr(ms, name):
+            raise SystemExit(f"--set {s}: skeleton.markersets has no {name}")
+        setattr(ms, name, ast.literal_eval(value))
+    from test_markersets import _bench_figure
+
+    ks, out_path = figures(args[0]), Path(args[1])
+    cache = load_cache(cache_path)
+    right = done = stale = 0
+    with open(out_path, "a") as out:
+        for k in ks:
+            t = time.perf_counter()
+            fig, _, X, owner = _bench_figure(k)
+            if k in cache and cache[k] is not None and not check:
+                res, src = ms._repairs_from(X, cache[k]), "cache"
+            else:
+                res, pre = full_merge(X)
+                src = "full"
+                if k in cache and cache[k] is not None:
+                    again = ms._repairs_from(X, cache[k])
+                    if cache[k] != pre or again.groups != res.groups:
+                        stale += 1
+                        src = "full(STALE)"
+                elif cache_path is not None:
+                    with _open(cache_path, "a") as c:
+                        c.write(json.dumps({"k": k, "pre_repair": pre}) + "\n")
+            pure, one = judge(fig, owner, res.groups)
+            right += pure and one
+            done += 1
+            out.write(f"{k} {'OK' if pure and one else 'BAD'} pure={pure} one={one} "
+                      f"n={res.n_markers} nmin={res.n_min} {time.perf_counter() - t:.1f}s "
+                      f"from={src}\n")
+            out.flush()
+    print(f"{right}/{done} merged right" + (f", {stale} stale cache entries" if check else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
