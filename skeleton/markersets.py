@@ -419,6 +419,7 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    fragments < 10 frames dropped: at most 3 of the <= 4 runs) every marker is seen in
    >= 400 - 117 - 27 = 256 frames, so two markers share >= 112 frames and the step finds
    nothing to join on a figure merged right: it can only change figures left wrong.
+   With step 7b off it also joins figure 1371's 10-frame end piece, which step 7b joins.
 
 The partner floor and the gap order, measured with bench_skeleton_outputs.py's figures
 (1 mm noise, 1-3 gaps of 3-40 frames per marker, 5 ghosts, 400 frames): figures 0-39 (on

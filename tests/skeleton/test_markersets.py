@@ -813,15 +813,23 @@ def test_a_piece_seen_while_its_partner_is_hidden_is_judged_by_continuity(monkey
     assert [a, b] in ids
 
 
-@pytest.mark.parametrize("k, marker", [(339, 39), (1371, 33)])
-def test_an_end_piece_left_as_its_own_id_is_joined_by_continuity(monkeypatch, k, marker):
+@pytest.mark.parametrize("k, marker, on_sphere", [(339, 39, False), (1371, 33, True)])
+def test_an_end_piece_left_as_its_own_id_is_joined_by_continuity(monkeypatch, k, marker,
+                                                                  on_sphere):
     """Figures 339 (failing since stop 18) and 1371 (since it was first run): the end piece
     of one marker of a 2-marker segment (339: marker 39's last 62 frames, 37 frames after
     the rest, its partner seen in 8 of them; 1371: marker 33's last 10) has no pose to
     align on and no partner to join by, and is left as its own id. Joining it to the rest
     of its marker costs 1.93 (1.12) in motion continuity, the next join 7.96 (7.80); step
-    7b joins it now (``CONTINUITY_JOINS``)."""
+    7b joins it now (``CONTINUITY_JOINS``). Without step 7b, step 11 (stop 52) joins 1371's
+    piece on its joint sphere, so the failure is set up with step 11 off too."""
+    import skeleton.markersets as ms
     fig, off, ids = _right_then_off(monkeypatch, k, "CONTINUITY_JOINS", False)
+    assert (off.n_markers == fig.n_markers) == on_sphere
+    monkeypatch.setattr(ms, "SPHERE_JOINS", False)
+    _, _, X, owner = _bench_figure(k)
+    off = merge_fragments(X)
+    ids = [sorted({int(owner[f]) for f in g}) for g in off.groups]
     assert off.n_markers == fig.n_markers + 1 and ids.count([marker]) == 2
 
 
