@@ -168,7 +168,12 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    segment partners put it at 2.35 and 4.25 x s0 squared at home, bound 10.8, marker 9's
    at 30.3. A first version, stop 44, also refused the move of a piece no judge placed at
    home, and lost figure 799, where such a move is a step on the way to the right
-   markers);
+   markers). A voter's partner counts in the scores only where it is rigid (sd <= 3 x s0)
+   to one of the tracks the pair makes, as merged or in some alternative
+   (``RIGID_SOMEWHERE``, stop 53; figure 7429: the 30-frame end piece of marker 5, a
+   2-marker segment, went to marker 7 of a sibling 2-marker segment on partners across a
+   joint that were rigid over a 137-frame voter only and 5.7-21 x s0 on every whole
+   track; such partners then decide any move: SCREEN53);
 4c. misfit pieces (``_move_misfits``): a piece too short to move a track's sd (figure 617:
    the first 11 frames of a marker whose next piece starts 26 frames later, given to a
    marker of another segment 4.6-9.4 mm from it over those frames) is judged by the jumps
@@ -346,7 +351,12 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    typical miss of one marker across that gap (0.6 mm x gap + 0.009 mm x gap^2, step 3's
    medians). The exchange that lowers the pair's cost most is made when it lowers it by
    ``CONTINUITY_EXCHANGE_MARGIN`` (2; 4 until stop 46), no sphere judge vetoes it and no
-   body finds its direction worse by the direction margin. Measured before the margin was
+   body finds its direction worse by the direction margin - unless another body finds it
+   better by as much (``CONTESTED_DIRECTIONS``, stop 53; held-out figure 8759: markers 52
+   and 53 of a 2-marker segment, 20.5 mm apart, held each other's end pieces; the exchange
+   gained 5.80, and 1 of 14 bodies held the direction tighter as merged, by 0.104, while 7
+   held it tighter exchanged, by 0.1-0.32; held-out 9460: markers 36 and 37 of a
+   2-marker segment stay exchanged without the rule). Measured before the margin was
    first chosen (``/tmp`` collector, figures 0-299, all merged right: the best alternative
    of each of the 4026 one-body pairs step 8 looks at in the final merge; before the later
    vetoes): every one would have mixed markers, and the largest cost they lowered was 2.41
@@ -1431,6 +1441,7 @@ KEPT_TRACK_JUDGES_VOTERS = False   # ... also where the piece moved in is a vote
 
 MISFITS_ARE_BAD = True   # step 4b: a marker holding a misfit piece (step 4c's) is examined
 LESS_OFF_BODY = True     # step 4b: nor a move off one body onto one it is further off
+RIGID_SOMEWHERE = True   # step 4b: a voter's partner counts where rigid to some alternative (7429)
 NO_NEW_MISFITS = True    # step 4b: nor one that makes a fitting piece a misfit (figure 4430)
 
 
@@ -1480,10 +1491,13 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                     sd[m] = np.nan
                     part[f] = np.flatnonzero(sd <= rigid * s0)
 
-        def score(g, t, q):
-            """the track t of fragments g against its voters' partners, among columns q"""
+        def score(g, t, q, keep=None):
+            """the track t of fragments g against its voters' partners, among columns q
+            (only those in ``keep``, where given)"""
             sd = np.full(M, np.nan)
             sd[q] = _sd_to(P[:, q], t, min_frames)
+            if keep is not None:
+                sd[~keep] = np.nan
             return sum(cost(sd[part[f]]) for f in g if f in part)
 
         def checked(g, old, excl):
@@ -1605,7 +1619,18 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                 q = np.setdiff1d(np.concatenate(
                     [part[f] for f in groups[a] + groups[b] if f in part] + [[]]),
                     ex).astype(int)
-                now = score(groups[a], P[:, a], q) + score(groups[b], P[:, b], q)
+                keep = None
+                if RIGID_SOMEWHERE:
+                    # a partner counts where it is rigid to one of the tracks the pair
+                    # makes in some alternative (figure 7429: partners across a joint,
+                    # rigid over a voter's frames only, decided a move)
+                    keep = np.zeros(M, bool)
+                    tr = [P[:, a], P[:, b]] + [t for na, nb in alts
+                                               for t in _tracks(X, [na, nb]).transpose(1, 0, 2)]
+                    for t in tr:
+                        sdq = _sd_to(P[:, q], t, min_frames)
+                        keep[q[sdq <= rigid * s0]] = True
+                now = score(groups[a], P[:, a], q, keep) + score(groups[b], P[:, b], q, keep)
                 jumps, turns = None, False
                 for na, nb in alts:
                     if not (checked(na, groups[a], ex) and checked(nb, groups[b], ex)):
@@ -1613,7 +1638,7 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                     if not (_paced(X, span, na, max_step) and _paced(X, span, nb, max_step)):
                         continue
                     ta, tb = _tracks(X, [na, nb]).transpose(1, 0, 2)
-                    gain = now - score(na, ta, q) - score(nb, tb, q)
+                    gain = now - score(na, ta, q, keep) - score(nb, tb, q, keep)
                     if gain >= margin and (best is None or gain > best[0]):
                         # never an exchange that step 4's jump test would undo
                         if jumps is None:
@@ -2216,6 +2241,7 @@ def _sphere_verdict(pts, ga, gb, na, nb, moved):
 
 
 CONTINUITY_EXCHANGES = True  # step 8: exchanges no sphere or direction finds, by continuity
+CONTESTED_DIRECTIONS = True  # ... a direction veto needs no body for the exchange (8759)
 STEP8_JUMPS = True  # step 8 makes no exchange that step 4's jump test would undo (4455)
 CONTINUITY_MARGIN = 4.0      # steps 7b and 10: the most a join may cost in continuity
 CONTINUITY_EXCHANGE_MARGIN = 2.0   # step 8: the least gain in the continuity cost (1304)
@@ -2366,7 +2392,9 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                             and (turn is None or rx - rk > turn[0])):
                         turn = (rx - rk, a, b, na, nb)
                 if CONTINUITY_EXCHANGES and not veto and not (
-                        spread.size and (spread[:, 0] - spread[:, 1] >= direction_margin).any()):
+                        spread.size and (spread[:, 0] - spread[:, 1] >= direction_margin).any()
+                        and not (CONTESTED_DIRECTIONS and (
+                            spread[:, 1] - spread[:, 0] >= direction_margin).any())):
                     if smooth_now is None:
                         smooth_now = continuity(ga) + continuity(gb)
                     smooth = smooth_now - continuity(na) - continuity(nb)
