@@ -1095,26 +1095,14 @@ def _join_by_spheres(X, groups, n_min, min_frames, max_step=np.inf, body_sd=1.5,
         S, s0 = _pair_sd(P, min_frames)
         if not s0 > 0:
             return groups
-        seen = ~np.isnan(P[..., 0])
-        common = seen.T.astype(np.int64) @ seen.astype(np.int64)
-        with np.errstate(invalid="ignore"):
-            one = (S <= body_sd * s0) & (common >= body_frames)
-        frames = {b: _body_frame(P, b) for b in _bodies(one, S)}
-        frames = {b: v for b, v in frames.items() if v[0].size >= body_frames}
+        common, _, frames = _one_body_frames(P, S, s0, body_sd, body_frames)
         M = len(groups)
         free = [[b for b in range(M) if b != a and not common[a, b]
                  and _paced(X, span, groups[a] + groups[b], max_step)] for a in range(M)]
         if not any(free) or not frames:
             return groups
-        in_body, spheres = {}, {}
-
-        def points(body, m):
-            if (body, m) not in in_body:
-                fr, R, t = frames[body]
-                x = P[fr, m]
-                ok = ~np.isnan(x[:, 0])
-                in_body[body, m] = np.einsum("bij,bj->bi", R[ok], x[ok]) + t[ok]
-            return in_body[body, m]
+        spheres = {}
+        points = _points_in(frames, P)         # (body, track) -> its points in the body's frame
 
         def judge(a, b) -> tuple:
             """(best z where the fewer points lie on the other's sphere, worst z): z the
@@ -2202,6 +2190,35 @@ def _body_frame(P, body) -> tuple:
     return fr, R, t
 
 
+def _one_body_frames(P, S, s0, body_sd, body_frames) -> tuple:
+    """(common, one, frames) of tracks P (T, M, 3) with pair sds S: the frames each pair is
+    seen in together (M, M), the pairs moving as one body (sd <= ``body_sd`` x s0 over >=
+    ``body_frames`` common frames), and the frame (``_body_frame``) of each body
+    (``_bodies``) seen in >= ``body_frames`` frames. Steps 8 and 11."""
+    seen = ~np.isnan(P[..., 0])
+    common = seen.T.astype(np.int64) @ seen.astype(np.int64)
+    with np.errstate(invalid="ignore"):
+        one = (S <= body_sd * s0) & (common >= body_frames)
+    frames = {b: _body_frame(P, b) for b in _bodies(one, S)}
+    return common, one, {b: v for b, v in frames.items() if v[0].size >= body_frames}
+
+
+def _points_in(frames, Y):
+    """A function (body, column) -> the points of column ``Y[:, column]`` seen in the frames
+    of ``body`` (a key of ``frames``, as ``_one_body_frames`` gives), in the body's frame;
+    each computed once."""
+    cache = {}
+
+    def points(body, c):
+        if (body, c) not in cache:
+            fr, R, t = frames[body]
+            x = Y[fr, c]
+            ok = ~np.isnan(x[:, 0])
+            cache[body, c] = np.einsum("bij,bj->bi", R[ok], x[ok]) + t[ok]
+        return cache[body, c]
+    return points
+
+
 def _common_sphere(Ys) -> list:
     """Residuals |y - c| - r_i of each point set in ``Ys`` about one centre c with a radius
     per set (Kasa's algebraic fit, shared centre)."""
@@ -2308,21 +2325,8 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
     continuity = _continuity_cost(X, vis)
     changed = False
     for _ in range(max_rounds):
-        seen = ~np.isnan(P[..., 0])
-        common = seen.T.astype(np.int64) @ seen.astype(np.int64)
-        with np.errstate(invalid="ignore"):
-            one = (S <= body_sd * s0) & (common >= body_frames)
-        frames = {b: _body_frame(P, b) for b in _bodies(one, S)}
-        frames = {b: v for b, v in frames.items() if v[0].size >= body_frames}
-        in_body = {}                  # (body, fragment) -> its points in the body's frame
-
-        def points(body, f):
-            if (body, f) not in in_body:
-                fr, R, t = frames[body]
-                x = X[fr, f]
-                ok = ~np.isnan(x[:, 0])
-                in_body[body, f] = np.einsum("bij,bj->bi", R[ok], x[ok]) + t[ok]
-            return in_body[body, f]
+        common, one, frames = _one_body_frames(P, S, s0, body_sd, body_frames)
+        points = _points_in(frames, X)    # (body, fragment) -> its points in the body's frame
 
         best = turn = cont = None
         sd_of = _fragment_sd(X, vis, P, min_frames) if STEP8_JUMPS else None
