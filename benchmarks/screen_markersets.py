@@ -16,10 +16,14 @@ since e80e2f2) holds figures 0-1170, 3880-4998, 7760-7793, 9160-9185 and those n
 and the module docstring (2,351).
 
 Usage: python benchmarks/screen_markersets.py FIGURES OUT [--cache FILE] [--check]
-       [--set NAME=VALUE ...]
+       [--set NAME=VALUE ...] [--compare NAME=VALUE ...]
 FIGURES is FIRST-LAST or a comma list; OUT gets one line per figure (appended):
 ``k OK|BAD pure=.. one=.. n=.. nmin=.. seconds from=cache|full``. ``--set`` sets a module
 constant of skeleton.markersets first (``--set SPHERE_JOINS=False``; Python literals).
+``--compare NAME=VALUE`` (a constant of steps 4-11; may be repeated) resumes each figure at
+step 4 again with it set so and adds ``NAME:acted=yes|no`` (whether the groups differ: the
+rule acted) and ``NAME:compared=OK|BAD`` to the line: a rule is screened by the figures it
+acts on.
 Prints the count right at the end.
 """
 from __future__ import annotations
@@ -96,6 +100,11 @@ def main(argv: list[str]) -> int:
     if "--check" in args:
         args.remove("--check")
         check = True
+    compares = []
+    while "--compare" in args:
+        i = args.index("--compare")
+        compares.append(args[i + 1])
+        del args[i:i + 2]
     while "--set" in args:
         i = args.index("--set")
         sets.append(args[i + 1])
@@ -108,6 +117,12 @@ def main(argv: list[str]) -> int:
         if not hasattr(ms, name):
             raise SystemExit(f"--set {s}: skeleton.markersets has no {name}")
         setattr(ms, name, ast.literal_eval(value))
+    compared = []
+    for c in compares:
+        c_name, _, c_value = c.partition("=")
+        if not hasattr(ms, c_name):
+            raise SystemExit(f"--compare {c}: skeleton.markersets has no {c_name}")
+        compared.append((c_name, ast.literal_eval(c_value)))
     from test_markersets import _bench_figure
 
     ks, out_path = figures(args[0]), Path(args[1])
@@ -133,9 +148,23 @@ def main(argv: list[str]) -> int:
             pure, one = judge(fig, owner, res.groups)
             right += pure and one
             done += 1
+            extra = ""
+            for c_name, c_value in compared:
+                groups = cache[k] if src == "cache" else pre
+                other = res
+                if groups is not None:
+                    kept = getattr(ms, c_name)
+                    setattr(ms, c_name, c_value)
+                    try:
+                        other = ms._repairs_from(X, groups)
+                    finally:
+                        setattr(ms, c_name, kept)
+                extra += (f" {c_name}:acted={'yes' if other.groups != res.groups else 'no'}"
+                          f" {c_name}:compared="
+                          f"{'OK' if all(judge(fig, owner, other.groups)) else 'BAD'}")
             out.write(f"{k} {'OK' if pure and one else 'BAD'} pure={pure} one={one} "
                       f"n={res.n_markers} nmin={res.n_min} {time.perf_counter() - t:.1f}s "
-                      f"from={src}\n")
+                      f"from={src}{extra}\n")
             out.flush()
     print(f"{right}/{done} merged right" + (f", {stale} stale cache entries" if check else ""))
     return 0

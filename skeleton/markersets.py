@@ -173,7 +173,16 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    (``RIGID_SOMEWHERE``, stop 53; figure 7429: the 30-frame end piece of marker 5, a
    2-marker segment, went to marker 7 of a sibling 2-marker segment on partners across a
    joint that were rigid over a 137-frame voter only and 5.7-21 x s0 on every whole
-   track; such partners then decide any move: SCREEN53);
+   track; such partners then decide any move: SCREEN53). The jump veto asks of each partner
+   and each of the two markers apart whether the partner sits at constant distances from
+   that marker's fragments in some assignment (``JUMPS_PER_MARKER``, stop 53; held-out
+   figure 9533: markers 15 and 27 of a 4- and a 3-marker segment across a ball joint held
+   each other's end pieces, 30 and 18 frames; the exchange gained 15.23, but of its three
+   jump partners, all rigid to every fragment at <= 3 x s0, two were each one marker's
+   segment partner and across the joint from the other, so fitted no pair and were left
+   out; the third, across the joint from marker 15, drifting, put the right assignment at
+   42.9 mm^2 against 14.4, over the 21 mm^2 margin. Per marker, the two segment partners
+   count for their own marker: 2.0e6 against 47 mm^2);
 4c. misfit pieces (``_move_misfits``): a piece too short to move a track's sd (figure 617:
    the first 11 frames of a marker whose next piece starts 26 frames later, given to a
    marker of another segment 4.6-9.4 mm from it over those frames) is judged by the jumps
@@ -269,8 +278,15 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    frames) whose fragments split into two overlap-free markers in more than one way become
    the split whose direction turns least across fragment changes (step 4's turning), when
    it turns at least ``turn_margin`` (60 deg) less than every other split and its two
-   markers are rigid to each other (``rigid_pair``). On a two-marker segment every split
-   is rigid (figures 524, 719: 1.0 s0) and a wrong one flips the direction at a change
+   markers are rigid to each other (``rigid_pair``). Where the overlaps leave one split
+   only, that split, when its two markers are rigid (``ONE_SPLIT``, stop 53; held-out
+   figure 9476: on a 2-marker segment whose parent has two markers, marker 27's first 103
+   frames were joined to marker 28's last two fragments, leaving 28's first 132 frames
+   and 27's last 271 as ids alone; 28's first overlaps 27's first and last fragments and
+   27's last overlaps 28's later ones, so the one split gives each marker its own). On
+   figures merged right three distinct markers always share frames pairwise (each is seen
+   in >= 256 of 400 frames), so no split exists. On a two-marker segment every split is
+   rigid (figures 524, 719: 1.0 s0) and a wrong one flips the direction at a change
    (524: right 27.5 deg, other 176.4; 719: 92.3 and 228.7); the rigidity keeps apart
    markers of two segments rigid where seen together (figure 403: m9 and m19 at 3.0 s0,
    with a piece of m9's partner m8: both splits 9.7 s0). Two markers may also be left as
@@ -826,7 +842,9 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
     whose direction turns least across fragment changes (``_turning``), when it turns at
     least ``turn_margin`` less than every other split and its two markers are rigid to each
     other (``rigid_pair``; figure 403: two markers of different segments, 3.0 s0 where seen
-    together, with a piece of a third would become a marker jumping between two distances)."""
+    together, with a piece of a third would become a marker jumping between two distances).
+    Fragments that split one way only take that split, when its markers are rigid
+    (``ONE_SPLIT``; figure 9476)."""
     vis = ~np.isnan(X[..., 0])
     while len(groups) > n_min:
         P = _tracks(X, groups)
@@ -850,7 +868,7 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
         for ids in sets:
             frs = [f for m in ids for f in groups[m]]
             splits = _colourings(X, vis, frs)
-            if len(splits) < 2:
+            if len(splits) < (1 if ONE_SPLIT else 2):
                 continue
             seen, rigid = _partner_frames(X, vis, P, frs, np.setdiff1d(np.arange(M), ids),
                                           min_frames, rigid_partner * s0)
@@ -858,7 +876,7 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
                 continue
             turns = np.array([_turning(X, vis, ga, gb) for ga, gb in splits])
             order = np.argsort(turns)
-            if turns[order[0]] > turns[order[1]] - turn_margin:
+            if len(splits) > 1 and turns[order[0]] > turns[order[1]] - turn_margin:
                 continue
             # the two markers of the split are one segment's: rigid to each other
             ta, tb = _tracks(X, list(splits[order[0]])).transpose(1, 0, 2)
@@ -873,6 +891,7 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
 
 
 TWO_OF_FOUR = True   # step 7 also takes two rigid pairs of ids that never share a frame
+ONE_SPLIT = True     # step 7 takes the one split where the fragments split only one way
 
 
 def _pairs_of_pairs(vis, groups, ok, bad) -> list:
@@ -1262,13 +1281,22 @@ def _jump_ss(X, vis, frags, Pq):
     return ss
 
 
-def _jumps(X, vis, ga0, gb0, alts, Pq, margin):
+def _jumps(X, vis, ga0, gb0, alts, Pq, margin, per_marker=False):
     """Step 4's jump costs of two markers' fragments (ga0, gb0) and of their alternatives
     ``alts``: (now, costs (len(alts),)), each the sum over both markers and the partners of
     ``_jump_ss``, over the partners only that sit at constant distances from the fragments
     in some assignment (the least cost over (ga0, gb0) and the alternatives <= ``margin``;
-    a partner across a joint drifts, and its fragments' means fit no two markers)."""
+    a partner across a joint drifts, and its fragments' means fit no two markers). With
+    ``per_marker`` that is asked of each partner and each of the two markers apart: a
+    partner of one marker's segment is across a joint from the other marker, where it
+    drifts, and still tells where the first marker's pieces belong (figure 9533)."""
     ss = _jump_ss(X, vis, ga0 + gb0, Pq)
+    if per_marker:
+        now = np.stack([ss(ga0), ss(gb0)])                               # (2, Q)
+        costs = np.array([np.stack([ss(ga), ss(gb)]) for ga, gb in alts]
+                         ).reshape(len(alts), 2, -1)
+        fits = np.minimum(now, costs.min(0, initial=np.inf)) <= margin  # (2, Q)
+        return float(now[fits].sum()), costs[:, fits].sum(1)
     now = ss(ga0) + ss(gb0)
     costs = np.array([ss(ga) + ss(gb) for ga, gb in alts]).reshape(len(alts), -1)
     fits = np.minimum(now, costs.min(0, initial=np.inf)) <= margin
@@ -1430,6 +1458,7 @@ KEPT_TRACK_JUDGES_VOTERS = False   # ... also where the piece moved in is a vote
 MISFITS_ARE_BAD = True   # step 4b: a marker holding a misfit piece (step 4c's) is examined
 LESS_OFF_BODY = True     # step 4b: nor a move off one body onto one it is further off
 RIGID_SOMEWHERE = True   # step 4b: a voter's partner counts where rigid to some alternative (7429)
+JUMPS_PER_MARKER = True  # step 4b's jump veto: a partner fits per marker, not per pair (9533)
 NO_NEW_MISFITS = True    # step 4b: nor one that makes a fitting piece a misfit (figure 4430)
 
 
@@ -1632,7 +1661,7 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                         if jumps is None:
                             js = strict(a, b)
                             jumps = _jumps(X, vis, groups[a], groups[b], alts, P[:, js],
-                                           jump_margin * s0 ** 2)
+                                           jump_margin * s0 ** 2, JUMPS_PER_MARKER)
                         now_j, alt_j = jumps
                         if alt_j[alts.index((na, nb))] >= now_j + jump_margin * s0 ** 2:
                             continue

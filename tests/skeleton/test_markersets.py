@@ -657,6 +657,34 @@ def test_a_direction_veto_another_body_contests_does_not_veto(monkeypatch, k, pa
     assert seg[pair[0]] == seg[pair[1]] and (seg == seg[pair[0]]).sum() == 2
 
 
+def test_two_markers_left_as_three_ids_that_split_one_way_take_that_split(monkeypatch):
+    """Held-out figure 9476 (first run at stop 52): on a 2-marker segment whose parent has
+    two markers, marker 27's first fragment (frames 0-102) was joined to marker 28's last
+    two (140-365), leaving marker 28's first (0-131) and marker 27's last (129-399) as ids
+    alone. Marker 28's first overlaps marker 27's first and last fragments, and 27's last
+    overlaps 28's later ones, so the fragments split one way only into two markers; step 7
+    took a split only where there were several to compare by their turning. With ``ONE_SPLIT`` off the three ids stay."""
+    fig, _, ids = _right_then_off(monkeypatch, 9476, "ONE_SPLIT", False)
+    assert [27, 28] in ids and [27] in ids and [28] in ids
+    assert len(ids) == fig.n_markers + 1
+    seg = fig.marker_segment
+    assert seg[27] == seg[28] and (seg == seg[27]).sum() == 2
+
+
+def test_the_jump_veto_counts_a_partner_for_the_marker_it_is_rigid_to(monkeypatch):
+    """Held-out figure 9533 (first run at stop 53): markers 15 and 27 (a 4- and a 3-marker
+    segment across a ball joint) held each other's end pieces (30 and 18 frames). Step 4b's
+    exchange gains 15.23, but its jump veto left out the two partners that are one marker's
+    segment partner and across the joint from the other (they fit no pair of markers), and
+    the third, drifting across the joint, vetoed it (42.9 against 14.4 mm^2, margin 21).
+    Counted per marker (``JUMPS_PER_MARKER``) the segment partners decide; without it the
+    two stay exchanged."""
+    fig, _, ids = _right_then_off(monkeypatch, 9533, "JUMPS_PER_MARKER", False)
+    assert ids.count([15, 27]) == 2
+    seg = fig.marker_segment
+    assert seg[15] != seg[27]
+
+
 def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     """Held-out figure 1833 (first run at stop 34): the linkage merges marker 17 right;
     the swap repair (steps 4-4c) moves its first fragment out and a piece of marker 15
