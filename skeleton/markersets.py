@@ -294,6 +294,15 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    3024: a 2-marker segment whose markers are lost before frame 79, one over frames 29-56,
    the other over 57-78); such pairs of pairs are judged as three ids are
    (``TWO_OF_FOUR``; 3024's right pairing turns 74 deg across the change, the other 155).
+   Ids with a segment partner are judged too where they split more than one way
+   (``PARTNER_SPLITS``, stop 53): the split that turns least by the margin, when the
+   partners' distances also jump least on it (``_jump_ss`` summed over the partners, by
+   step 4's ``jump_margin`` x s0 squared below every other split). Held-out figure 9471:
+   both markers of a 2-marker hinge segment whose parent has two markers were each left as
+   two ids, their pieces before and after gaps of 33-73 frames; a marker 420 mm away across
+   the hinge stays at <= 3 x s0 to all four (sd 1.2-3.6 mm) and counted as a segment
+   partner, so step 7 left them; the right pairing turns 52.7 deg against 158.4 and puts
+   that partner's jumps at 3603 mm^2 against 10847.
 7b. join by continuity (``_join_by_continuity``, ``CONTINUITY_JOINS``): while there are
    still more markers than the bound, two markers that never share a frame are joined
    when the join costs at most ``CONTINUITY_MARGIN`` (4) in step 8's continuity cost (the
@@ -832,7 +841,7 @@ def _colourings(X, vis, frags, limit=8) -> list:
 
 
 def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.0,
-                  rigid_share=0.8, turn_margin=np.pi / 3) -> list:
+                  rigid_share=0.8, turn_margin=np.pi / 3, jump_margin=10.8) -> list:
     """Step 7 (module docstring): while there are more markers than ``n_min``, three markers
     rigid to each other wherever they are seen together (distance sd <= ``rigid_pair`` x the
     measured sd s0, at least two of the three pairs measured), with no segment partner
@@ -844,7 +853,9 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
     other (``rigid_pair``; figure 403: two markers of different segments, 3.0 s0 where seen
     together, with a piece of a third would become a marker jumping between two distances).
     Fragments that split one way only take that split, when its markers are rigid
-    (``ONE_SPLIT``; figure 9476)."""
+    (``ONE_SPLIT``; figure 9476). Ids with a segment partner that split more than one way
+    take the split that turns least where the partners' distances also jump least on it,
+    by ``jump_margin`` x s0 squared (``PARTNER_SPLITS``; figure 9471)."""
     vis = ~np.isnan(X[..., 0])
     while len(groups) > n_min:
         P = _tracks(X, groups)
@@ -870,14 +881,23 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
             splits = _colourings(X, vis, frs)
             if len(splits) < (1 if ONE_SPLIT else 2):
                 continue
-            seen, rigid = _partner_frames(X, vis, P, frs, np.setdiff1d(np.arange(M), ids),
-                                          min_frames, rigid_partner * s0)
-            if ((seen > 0) & (rigid >= rigid_share * seen)).any():
+            others = np.setdiff1d(np.arange(M), ids)
+            seen, rigid = _partner_frames(X, vis, P, frs, others, min_frames,
+                                          rigid_partner * s0)
+            partners = others[(seen > 0) & (rigid >= rigid_share * seen)]
+            if partners.size and not (PARTNER_SPLITS and len(splits) > 1):
                 continue
             turns = np.array([_turning(X, vis, ga, gb) for ga, gb in splits])
             order = np.argsort(turns)
             if len(splits) > 1 and turns[order[0]] > turns[order[1]] - turn_margin:
                 continue
+            if partners.size:
+                # segment partners: their distances must not jump less on another split
+                ss = _jump_ss(X, vis, frs, P[:, partners])
+                jumps = np.array([float((ss(ga) + ss(gb)).sum()) for ga, gb in splits])
+                if (np.delete(jumps, order[0]) < jumps[order[0]] + jump_margin * s0 ** 2
+                        ).any():
+                    continue
             # the two markers of the split are one segment's: rigid to each other
             ta, tb = _tracks(X, list(splits[order[0]])).transpose(1, 0, 2)
             if _sd_to(tb[:, None], ta, min_frames)[0] <= rigid_pair * s0:
@@ -892,6 +912,7 @@ def _two_of_three(X, groups, min_frames, n_min, rigid_pair=5.0, rigid_partner=3.
 
 TWO_OF_FOUR = True   # step 7 also takes two rigid pairs of ids that never share a frame
 ONE_SPLIT = True     # step 7 takes the one split where the fragments split only one way
+PARTNER_SPLITS = True   # ... and judges ids with a segment partner too, by turns and jumps
 
 
 def _pairs_of_pairs(vis, groups, ok, bad) -> list:

@@ -671,6 +671,22 @@ def test_two_markers_left_as_three_ids_that_split_one_way_take_that_split(monkey
     assert seg[27] == seg[28] and (seg == seg[27]).sum() == 2
 
 
+def test_two_markers_left_as_four_ids_with_a_partner_are_paired_by_turns_and_jumps(
+        monkeypatch):
+    """Held-out figure 9471 (first run at stop 52): both markers (34, 35) of a 2-marker
+    hinge segment whose parent has two markers are each left as two ids, across gaps of
+    33-73 frames. A marker 420 mm away across the hinge is rigid (<= 3 x s0) to all four
+    pieces, so step 7, which judged ids without a segment partner only, left them. Judged
+    with the partner (``PARTNER_SPLITS``) the right pairing turns 52.7 deg against 158.4
+    and the partner's distances jump less on it (3603 against 10847 mm^2); without it the
+    four ids stay."""
+    fig, _, ids = _right_then_off(monkeypatch, 9471, "PARTNER_SPLITS", False)
+    assert ids.count([34]) == 2 and ids.count([35]) == 2
+    assert len(ids) == fig.n_markers + 2
+    seg = fig.marker_segment
+    assert seg[34] == seg[35] and (seg == seg[34]).sum() == 2
+
+
 def test_the_jump_veto_counts_a_partner_for_the_marker_it_is_rigid_to(monkeypatch):
     """Held-out figure 9533 (first run at stop 53): markers 15 and 27 (a 4- and a 3-marker
     segment across a ball joint) held each other's end pieces (30 and 18 frames). Step 4b's
