@@ -1926,6 +1926,7 @@ ONE_UNJUDGED_FREE = True  # ... or, of several free markers, to the one where no
 CONTINUITY_OPEN = True   # step 4c: a misfit no marker takes goes to the free marker where
 #                          nothing finds it off that continues it best (figure 4462)
 CONTINUITY_OPEN_MARGIN = 2.0   # ... by this much in step 8's continuity cost over the next
+ONE_OPEN = True          # ... or, the one such marker, where it continues it better (9778)
 CONTINUITY_OFF_BODY = True   # ... also an off-body piece with several free markers where
 #                              nothing finds it off (ONLY_FREE_MARKER's case; figure 2738)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
@@ -1950,16 +1951,25 @@ def _continues_best(X, vis, groups, f, a, open_):
     one whose continuity cost (step 8's ``_continuity_cost``) f raises least, when that is
     less than taking f off its marker ``a`` lowers it and at least
     ``CONTINUITY_OPEN_MARGIN`` less than the next such marker's; else None (also with fewer
-    than two such markers). Figure 4462: marker 30's first 17 frames, rigid to markers 0, 2
+    than two such markers, unless ``ONE_OPEN``: then the one, when f raises its cost less
+    than taking f off a lowers a's; figure 9778: marker 20's 13-frame first piece, 527 and
+    1057 x the bound off both judges of marker 10 it sat on, one marker free, 1.34
+    against 3.36). Figure 4462: marker 30's first 17 frames, rigid to markers 0, 2
     and 3 of the root segment while the chain between barely moved (but at other distances
     than marker 1), sat on marker 1; markers 29 and 30 were both free and unjudged, and f
     raised their costs by 3.78 and 1.61 (taking it off marker 1 lowered that by 2.49).
     Figure 2738: marker 0's first 23 frames, off the one-body track of marker 6 it sat on,
     no judge placing it; markers 0 and 1 free and unjudged, added costs 0.69 and 4.46
     (taking it off marker 6, 3.66)."""
-    if len(open_) < 2:
+    if len(open_) < (1 if ONE_OPEN else 2):
         return None
     cost = _continuity_cost(X, vis)
+    if len(open_) == 1:
+        # one marker free and unjudged: it continues f better than its marker does
+        # (``ONE_OPEN``; figure 9778)
+        b = open_[0]
+        added = cost(groups[b] + [f]) - cost(groups[b])
+        return b if added < cost(groups[a]) - cost([h for h in groups[a] if h != f]) else None
     (best, b), (second, _) = sorted((cost(groups[b] + [f]) - cost(groups[b]), b)
                                     for b in open_)[:2]
     gain = cost(groups[a]) - cost([h for h in groups[a] if h != f])

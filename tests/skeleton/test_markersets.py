@@ -701,6 +701,20 @@ def test_the_jump_veto_counts_a_partner_for_the_marker_it_is_rigid_to(monkeypatc
     assert seg[15] != seg[27]
 
 
+def test_a_misfit_with_one_open_marker_goes_there_when_it_continues_it(monkeypatch):
+    """Held-out figure 9778 (first run at stop 53): the linkage gave marker 20's 13-frame
+    first piece (frames 8-20, a 2-marker segment whose partner is seen with it for 5
+    frames) to marker 10 of the parent segment. Both judges of marker 10 find it 527 and
+    1057 x the bound away, no marker fits it and no exchange takes it; one marker is free
+    over its frames with nothing to judge it there (marker 20's own id), and step 4c's
+    continuity move compared two or more such markers only. The one open marker takes it
+    when the piece raises its continuity cost less than taking it off lowers marker 10's
+    (1.34 against 3.36; ``ONE_OPEN``); without it the piece stays."""
+    fig, _, ids = _right_then_off(monkeypatch, 9778, "ONE_OPEN", False)
+    assert [10, 20] in ids and [20] in ids
+    assert fig.marker_segment[10] != fig.marker_segment[20]
+
+
 def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     """Held-out figure 1833 (first run at stop 34): the linkage merges marker 17 right;
     the swap repair (steps 4-4c) moves its first fragment out and a piece of marker 15
