@@ -292,12 +292,14 @@ def test_marker_split_across_a_long_gap_joined_by_its_partners(monkeypatch):
     than the motion-continuity window (45), and its segment (two markers) gives no pose to
     align on, so every merge pass leaves it as two ids. Both ids are rigid to the segment's
     other marker at the same distance and never share a frame: step 6
-    (``_join_by_partners``) joins them. (Step 7b's continuity joins it too; it is off for
-    the failure.)"""
+    (``_join_by_partners``) joins them. (Step 7b's continuity joins it too, and since stop
+    53 step 7, the marker's two ids and its partner splitting one way only, ``ONE_SPLIT``;
+    both are off for the failure.)"""
     from skeleton import markersets
     fig, mo, X, owner = _bench_figure(166)
     monkeypatch.setattr(markersets, "_join_by_partners", lambda X, groups, *a, **kw: groups)
     monkeypatch.setattr(markersets, "CONTINUITY_JOINS", False)
+    monkeypatch.setattr(markersets, "ONE_SPLIT", False)
     split = merge_fragments(X)
     assert split.n_markers == fig.n_markers + 1          # the failure this test guards against
     assert all(len({int(owner[f]) for f in g}) == 1 for g in split.groups)
