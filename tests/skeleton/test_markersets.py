@@ -600,9 +600,11 @@ def test_two_markers_hidden_together_are_told_apart_by_their_joint_spheres(monke
     _check(fig, X, owner, merge_fragments(X), mo.markers)
     # without step 8 the two markers stay mixed (the failure guarded against; since stop 36
     # the speed gate keeps 221's piece off the other marker too, so it is off here, and
-    # since stop 51 the loose passes' order, so it is set as before)
+    # since stop 51 the loose passes' order, so it is set as before, and since stop 53
+    # step 4c's move to the one open marker, ONE_OPEN, puts 221's piece back, so it is off)
     import skeleton.markersets as ms
     monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
+    monkeypatch.setattr(ms, "ONE_OPEN", False)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", merge_kw=NO_GATE,
                        max_rounds=0) == [pair]
 
@@ -626,9 +628,11 @@ def test_two_markers_exchanged_are_told_apart_by_their_direction_in_a_neighbour(
     _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     # without the direction rule the two markers stay exchanged (the failure guarded
     # against; since stop 53 step 4b's partners rigid to an alternative, RIGID_SOMEWHERE,
-    # keep 1646's pair from being exchanged, so that is off here)
+    # keep 1646's pair from being exchanged, and with step 4b's jump veto per marker,
+    # JUMPS_PER_MARKER, the pair is not left exchanged either: both are off here)
     import skeleton.markersets as ms
     monkeypatch.setattr(ms, "RIGID_SOMEWHERE", False)
+    monkeypatch.setattr(ms, "JUMPS_PER_MARKER", False)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", merge_kw=NO_DEFER,
                        before_stop39=True, direction_margin=np.inf) == [pair, pair]
 
