@@ -1982,15 +1982,14 @@ def _continues_best(X, vis, groups, f, a, open_):
     if len(open_) < (1 if ONE_OPEN else 2):
         return None
     cost = _continuity_cost(X, vis)
+    gain = cost(groups[a]) - cost([h for h in groups[a] if h != f])   # f off its marker
     if len(open_) == 1:
         # one marker free and unjudged: it continues f better than its marker does
         # (``ONE_OPEN``; figure 9778)
         b = open_[0]
-        added = cost(groups[b] + [f]) - cost(groups[b])
-        return b if added < cost(groups[a]) - cost([h for h in groups[a] if h != f]) else None
+        return b if cost(groups[b] + [f]) - cost(groups[b]) < gain else None
     (best, b), (second, _) = sorted((cost(groups[b] + [f]) - cost(groups[b]), b)
                                     for b in open_)[:2]
-    gain = cost(groups[a]) - cost([h for h in groups[a] if h != f])
     return b if best < gain and second - best >= CONTINUITY_OPEN_MARGIN else None
 
 
