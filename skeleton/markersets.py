@@ -424,7 +424,10 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    frames come back alone, given to marker 7 by the linkage; the parent's three markers
    are seen together over 2 of them. In its extended frame (two markers and its joint
    with the root) the piece sits 5.2 mm inside marker 7's sphere and 0.4 mm off marker
-   8's; that sphere fits at 1.59 x s0.
+   8's; that sphere fits at 1.59 x s0. ``benchmarks/screen_markersets.py --compare
+   VIRTUAL_FRAMES=False`` (stop 54): 4892 cached figures (0-1737, 2146-2690, 3880-5917,
+   7760-7793, 9160-9185, 9521-9999 and 32 named) all right with it, acting on 6245 only;
+   2691-3572 and held-out first runs 10000-10881 (full merges) it acted on none.
 9. step 8 can leave a marker as two ids, as the swap repair can (step 5): in figure 1833
    (held out, first run at stop 34) the linkage merged marker 17 right, the swap repair
    moved its first fragment out and a piece of marker 15 (same segment) in, and step 8
