@@ -1926,6 +1926,15 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                         # exchange takes it: the free marker with no track to find it off
                         # that continues its motion clearly best (figure 4462)
                         moves.append((key, f, a, b, None))
+                    elif (BODY_FITS_FREE and not swaps and off and not at_home
+                          and (b := _one_body_fits(X, vis, P, sd_of, f, groups, free, [a],
+                                                   rigid * s0, one_body * s0, bound,
+                                                   voter_frames)) is not None):
+                        # off its marker's body, found there by no judge, taken by no
+                        # marker or exchange: the one free marker whose one-body tracks
+                        # all hold it as their own, every other free marker off one of
+                        # its one-body tracks (figure 10847)
+                        moves.append((key, f, a, b, None))
         if not moves:
             break
         _, f, a, b, swap = max(moves, key=lambda m: m[:3])
@@ -1950,8 +1959,35 @@ CONTINUITY_OPEN_MARGIN = 2.0   # ... by this much in step 8's continuity cost ov
 ONE_OPEN = True          # ... or, the one such marker, where it continues it better (9778)
 CONTINUITY_OFF_BODY = True   # ... also an off-body piece with several free markers where
 #                              nothing finds it off (ONLY_FREE_MARKER's case; figure 2738)
+BODY_FITS_FREE = True    # step 4c: an off-body piece no marker takes goes to the one free
+#                          marker whose one-body tracks all hold it (figure 10847)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
 #                          also find the piece on its own (figure 4083)
+
+
+def _one_body_fits(X, vis, P, sd_of, f, groups, free, excl, rigid_sd, body_sd, bound,
+                   partner_frames):
+    """The one marker of ``free`` (indices into ``groups``) whose one-body tracks
+    (``_body_sds``: moving as one body with its fragments, seen with fragment ``f``; one at
+    least) all move as one body with f too (sd <= ``body_sd``) at the distances they keep
+    from that marker (not ``_off_body``), where every other marker of ``free`` has a
+    one-body track f is off (sd > ``rigid_sd``); else None (``BODY_FITS_FREE``, step 4c).
+    A judge rigid to a marker but not one body with it can be across a joint that was
+    still while that marker was seen: in figure 10847, marker 11's first 39 frames sat on
+    marker 25 of the next segment (its segment partner there put the piece 382 x s0
+    squared off), and on marker 11 one judge, a marker two segments on and rigid to it,
+    found it 191 x s0 squared off, where its three one-body tracks (sd 0.7-1.06 x s0) found
+    it at 0.01-2.3; the other free marker's one-body tracks were 11-13 x s0 off it."""
+    takes, off = [], 0
+    for b in free:
+        js, sd = _body_sds(vis, P, sd_of, f, groups[b], excl + [b], body_sd, partner_frames)
+        if js.size and (sd > rigid_sd).any():
+            off += 1
+        elif (js.size and (sd <= body_sd).all()
+              and not _off_body(X, vis, P, sd_of, f, groups[b], excl + [b], rigid_sd,
+                                body_sd, bound, partner_frames)):
+            takes.append(b)
+    return takes[0] if len(takes) == 1 and off == len(free) - 1 else None
 
 
 def _tells(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames, at_home) -> bool:

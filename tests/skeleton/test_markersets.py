@@ -721,6 +721,20 @@ def test_a_misfit_with_one_open_marker_goes_there_when_it_continues_it(monkeypat
     assert fig.marker_segment[10] != fig.marker_segment[20]
 
 
+def test_an_off_body_piece_goes_to_the_one_free_marker_whose_body_holds_it(monkeypatch):
+    """Held-out figure 10847 (first run at stop 54): the linkage gave marker 11's first 39
+    frames (a 3-marker segment) to marker 25 of the next segment, whose segment partner
+    puts the piece 382 x s0 squared off. On marker 11's own id (free over those frames) one
+    judge, a marker two segments on that is rigid to marker 11 but not one body with it,
+    finds it 191 x s0 squared off, so no marker fits it; its three one-body tracks there
+    (sd 0.7-1.06 x s0) find it at 0.01-2.3, and the other free marker's are 11-13 x s0 off
+    it. The one free marker whose one-body tracks all hold it takes it
+    (``BODY_FITS_FREE``); without it the piece stays on marker 25."""
+    fig, _, ids = _right_then_off(monkeypatch, 10847, "BODY_FITS_FREE", False)
+    assert [11, 25] in ids and [11] in ids
+    assert fig.marker_segment[11] != fig.marker_segment[25]
+
+
 def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     """Held-out figure 1833 (first run at stop 34): the linkage merges marker 17 right;
     the swap repair (steps 4-4c) moves its first fragment out and a piece of marker 15
