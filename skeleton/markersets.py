@@ -249,7 +249,14 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    nothing finds it off goes the same way (``CONTINUITY_OFF_BODY``; figure 2738, failing
    since stop 38: marker 0's first 23 frames sat on marker 6, 6.1 x s0 off its one-body
    track; markers 0 and 1 free and unjudged, added costs 0.69 and 4.46; off marker 6,
-   3.66).
+   3.66). Such a piece (off its marker's body, found there by no judge) that no marker
+   fits and no exchange takes goes to the one free marker whose one-body tracks all hold
+   it (sd <= 1.5 x s0, at their distances: not ``_off_body``) when every other free
+   marker has a one-body track it is off (``BODY_FITS_FREE``; held-out figure 10847,
+   stop 55: marker 11's first 39 frames sat on marker 25 of the next segment, 382 x s0
+   squared off its segment partner; on marker 11 a judge two segments on, rigid to it
+   but not one body with it, found the piece 191 x s0 squared off while its three one-body
+   tracks found it at 0.01-2.3).
    In an exchange the misfit itself may go where no track judges it (no judge, off no
    one-body track) when a piece judged to fit comes back in its place
    (``EXCHANGE_UNJUDGED``; figure 4251, held out at stop 41: the linkage exchanged the
