@@ -254,7 +254,7 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
    it (sd <= 1.5 x s0, at their distances: not ``_off_body``) when every other free
    marker has a one-body track it is off (``BODY_FITS_FREE``; held-out figure 10847,
    stop 55: marker 11's first 39 frames sat on marker 25 of the next segment, 382 x s0
-   squared off its segment partner; on marker 11 a judge two segments on, rigid to it
+   squared off its segment partner; on marker 11 a judge on segment 16, rigid to it
    but not one body with it, found the piece 191 x s0 squared off while its three one-body
    tracks found it at 0.01-2.3).
    In an exchange the misfit itself may go where no track judges it (no judge, off no
@@ -1982,7 +1982,7 @@ def _one_body_fits(X, vis, P, sd_of, f, groups, free, excl, rigid_sd, body_sd, b
     A judge rigid to a marker but not one body with it can be across a joint that was
     still while that marker was seen: in figure 10847, marker 11's first 39 frames sat on
     marker 25 of the next segment (its segment partner there put the piece 382 x s0
-    squared off), and on marker 11 one judge, a marker two segments on and rigid to it,
+    squared off), and on marker 11 one judge, marker 44 of segment 16, rigid to it,
     found it 191 x s0 squared off, where its three one-body tracks (sd 0.7-1.06 x s0) found
     it at 0.01-2.3; the other free marker's one-body tracks were 11-13 x s0 off it."""
     takes, off = [], 0

@@ -725,7 +725,7 @@ def test_an_off_body_piece_goes_to_the_one_free_marker_whose_body_holds_it(monke
     """Held-out figure 10847 (first run at stop 54): the linkage gave marker 11's first 39
     frames (a 3-marker segment) to marker 25 of the next segment, whose segment partner
     puts the piece 382 x s0 squared off. On marker 11's own id (free over those frames) one
-    judge, a marker two segments on that is rigid to marker 11 but not one body with it,
+    judge, marker 44 of segment 16, rigid to marker 11 but not one body with it,
     finds it 191 x s0 squared off, so no marker fits it; its three one-body tracks there
     (sd 0.7-1.06 x s0) find it at 0.01-2.3, and the other free marker's are 11-13 x s0 off
     it. The one free marker whose one-body tracks all hold it takes it
