@@ -144,10 +144,16 @@ def initial_poses(nxy: np.ndarray, *, spacing_m=None, symmetric: bool = False,
         return InitialPoses(R=R, t=t, ok=False,
                             reason=f"cameras {p},{c} share only {both.sum()} points"), nxy
     a, b = pt[p, both], pt[c, both]
-    E, mask = cv2.findEssentialMat(a, b, np.eye(3), method=cv2.RANSAC, prob=0.9999,
-                                   threshold=thresh_norm)
+    try:
+        E, mask = cv2.findEssentialMat(a, b, np.eye(3), method=cv2.RANSAC, prob=0.9999,
+                                       threshold=thresh_norm)
+    except cv2.error:
+        # OpenCV 5.1 raises on degenerate points where 5.0 returned no matrix
+        E = None
     if E is None or E.shape != (3, 3):
-        return InitialPoses(R=R, t=t, ok=False, reason=f"essential matrix failed for {p},{c}"), nxy
+        return InitialPoses(R=R, t=t, ok=False, reason=(
+            f"essential matrix failed for cameras {p},{c}: no consistent pose from their "
+            f"{int(both.sum())} shared wand observations (wrong intrinsics?)")), nxy
     _, Rpc, tpc, _ = cv2.recoverPose(E, a, b, np.eye(3), mask=mask)
     R[c], t[c] = Rpc, tpc.ravel()
     placed[c] = True
