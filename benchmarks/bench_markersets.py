@@ -1,4 +1,4 @@
-"""Marker sets (skeleton/markersets.py) on random simulated figures, with and without the
+"""Marker sets (skeleton/markersets/) on random simulated figures, with and without the
 swap repair (steps 4, 4b, 5 and 6), in the same run.
 
 Usage: python benchmarks/bench_markersets.py [first=0] [last=80] [n_frames=400]
@@ -13,7 +13,7 @@ dropped. Since commit 70ca108 hw_sim's random_tree keeps a segment's markers
 built with a smaller ``min_marker_spacing_m`` (random_tree takes up to 400 draws per marker;
 with 60, figure 59 kept two markers 7.8 mm apart). Merge time: the
 sum over the figures, and its ratio to the merge without the repair (``repair_swaps=False``:
-steps 1-3 of skeleton/markersets.py only).
+steps 1-3 of skeleton/markersets/ only).
 """
 from __future__ import annotations
 

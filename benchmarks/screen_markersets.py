@@ -3,7 +3,7 @@
 of ``tests/skeleton/test_markersets.py``: seed 1000 + k, 400 frames, 1 mm noise, 1-3 gaps of
 3-39 frames per marker, 5 ghosts).
 
-A rule of steps 4-11 of ``skeleton/markersets.py`` does not change what steps 1-3 (the
+A rule of steps 4-11 of ``skeleton/markersets/`` does not change what steps 1-3 (the
 linkage, two thirds of the merge time) give, so their groups can be cached: with ``--cache
 FILE`` (JSON lines, gzip where the name ends in .gz) a figure found there is resumed at step 4
 (``skeleton.markersets._repairs_from``), and a figure not found there is merged in full and
@@ -19,7 +19,7 @@ Usage: python benchmarks/screen_markersets.py FIGURES OUT [--cache FILE] [--chec
        [--set NAME=VALUE ...] [--compare NAME=VALUE ...]
 FIGURES is FIRST-LAST or a comma list; OUT gets one line per figure (appended):
 ``k OK|BAD pure=.. one=.. n=.. nmin=.. seconds from=cache|full``. ``--set`` sets a module
-constant of skeleton.markersets first (``--set SPHERE_JOINS=False``; Python literals).
+constant of skeleton.markersets.rules first (``--set SPHERE_JOINS=False``; Python literals).
 ``--compare NAME=VALUE`` (a constant of steps 4-11; may be repeated) resumes each figure at
 step 4 again with it set so and adds ``NAME:acted=yes|no`` (whether the groups differ: the
 rule acted) and ``NAME:compared=OK|BAD`` to the line: a rule is screened by the figures it
@@ -114,14 +114,14 @@ def main(argv: list[str]) -> int:
         return 2
     for s in sets:
         name, _, value = s.partition("=")
-        if not hasattr(ms, name):
-            raise SystemExit(f"--set {s}: skeleton.markersets has no {name}")
-        setattr(ms, name, ast.literal_eval(value))
+        if not hasattr(ms.rules, name):
+            raise SystemExit(f"--set {s}: skeleton.markersets.rules has no {name}")
+        setattr(ms.rules, name, ast.literal_eval(value))
     compared = []
     for c in compares:
         c_name, _, c_value = c.partition("=")
-        if not hasattr(ms, c_name):
-            raise SystemExit(f"--compare {c}: skeleton.markersets has no {c_name}")
+        if not hasattr(ms.rules, c_name):
+            raise SystemExit(f"--compare {c}: skeleton.markersets.rules has no {c_name}")
         compared.append((c_name, ast.literal_eval(c_value)))
     from test_markersets import _bench_figure
 
@@ -153,12 +153,12 @@ def main(argv: list[str]) -> int:
                 groups = cache[k] if src == "cache" else pre
                 other = res
                 if groups is not None:
-                    kept = getattr(ms, c_name)
-                    setattr(ms, c_name, c_value)
+                    kept = getattr(ms.rules, c_name)
+                    setattr(ms.rules, c_name, c_value)
                     try:
                         other = ms._repairs_from(X, groups)
                     finally:
-                        setattr(ms, c_name, kept)
+                        setattr(ms.rules, c_name, kept)
                 extra += (f" {c_name}:acted={'yes' if other.groups != res.groups else 'no'}"
                           f" {c_name}:compared="
                           f"{'OK' if all(judge(fig, owner, other.groups)) else 'BAD'}")

@@ -102,6 +102,20 @@ def test_long_gaps_do_not_pair_markers_across_segments(k):
     _check(fig, X, owner, merge_fragments(X), mo.markers)
 
 
+def _set_step(monkeypatch, name, value):
+    """Set the step function ``name`` of skeleton.markersets to ``value`` in every module
+    of the package that calls it by that name (``_repair_swaps`` runs steps 4b and 4c from
+    ``skeleton.markersets.swaps``; the later steps run from the package itself)."""
+    import sys
+    mods = [m for n, m in sorted(sys.modules.items())
+            if n == "skeleton.markersets" or n.startswith("skeleton.markersets.")]
+    holders = [m for m in mods if name in vars(m)]
+    if not holders:
+        raise AttributeError(f"skeleton.markersets has no step {name!r}")
+    for m in holders:
+        monkeypatch.setattr(m, name, value)
+
+
 def _bench_figure(k):
     """Figure k of bench_skeleton_outputs.py / bench_markersets.py."""
     g = np.random.default_rng(1000 + k)
@@ -140,8 +154,8 @@ def test_swapped_markers_of_a_two_marker_segment_are_repaired(monkeypatch, k):
     import skeleton.markersets as ms
     from skeleton.markersets import _repair_swaps
     fig, mo, X, owner = _bench_figure(k)
-    monkeypatch.setattr(ms, "ORDER_SD_WEIGHT", OLD_ORDER_SD_WEIGHT)
-    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
+    monkeypatch.setattr(ms.rules, "ORDER_SD_WEIGHT", OLD_ORDER_SD_WEIGHT)
+    monkeypatch.setattr(ms.rules, "LOOSE_BY_CONTINUITY", False)
     before = merge_fragments(X, repair_swaps=False)
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert len(mixed) == 2                      # the failure this test guards against ...
@@ -190,7 +204,7 @@ def test_marker_split_beside_a_swap_merges_after_the_repair(monkeypatch, k):
     import skeleton.markersets as ms
     from skeleton.markersets import _repair_swaps
     fig, mo, X, owner = _bench_figure(k)
-    monkeypatch.setattr(ms, "ORDER_SD_WEIGHT", OLD_ORDER_SD_WEIGHT)
+    monkeypatch.setattr(ms.rules, "ORDER_SD_WEIGHT", OLD_ORDER_SD_WEIGHT)
     before = merge_fragments(X, repair_swaps=False, continuity_m=0.0)
     repaired = _repair_swaps(X, [list(g) for g in before.groups], MIN_FRAMES, 1.0)
     assert all(len({int(owner[f]) for f in g}) == 1 for g in repaired)     # pure ...
@@ -297,9 +311,9 @@ def test_marker_split_across_a_long_gap_joined_by_its_partners(monkeypatch):
     both are off for the failure.)"""
     from skeleton import markersets
     fig, mo, X, owner = _bench_figure(166)
-    monkeypatch.setattr(markersets, "_join_by_partners", lambda X, groups, *a, **kw: groups)
-    monkeypatch.setattr(markersets, "CONTINUITY_JOINS", False)
-    monkeypatch.setattr(markersets, "ONE_SPLIT", False)
+    _set_step(monkeypatch, "_join_by_partners", lambda X, groups, *a, **kw: groups)
+    monkeypatch.setattr(markersets.rules, "CONTINUITY_JOINS", False)
+    monkeypatch.setattr(markersets.rules, "ONE_SPLIT", False)
     split = merge_fragments(X)
     assert split.n_markers == fig.n_markers + 1          # the failure this test guards against
     assert all(len({int(owner[f]) for f in g}) == 1 for g in split.groups)
@@ -319,7 +333,7 @@ def test_short_end_piece_on_a_segment_partner_is_moved_back(monkeypatch, k):
     import skeleton.markersets as ms
     from skeleton.markersets import _repair_swaps
     fig, mo, X, owner = _bench_figure(k)
-    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
+    monkeypatch.setattr(ms.rules, "LOOSE_BY_CONTINUITY", False)
     before = merge_fragments(X, repair_swaps=False)
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert len(mixed) == 1                      # the failure this test guards against ...
@@ -345,7 +359,7 @@ def test_short_piece_of_another_segment_moves_to_the_marker_it_fits(monkeypatch)
     (``_move_misfits``) moves it there."""
     from skeleton import markersets
     fig, mo, X, owner = _bench_figure(617)
-    monkeypatch.setattr(markersets, "_move_misfits", lambda X, groups, *a, **kw: groups)
+    _set_step(monkeypatch, "_move_misfits", lambda X, groups, *a, **kw: groups)
     kept = merge_fragments(X)
     mixed = [g for g in kept.groups if len({int(owner[f]) for f in g}) > 1]
     assert len(mixed) == 1                      # the failure this test guards against ...
@@ -383,10 +397,10 @@ def test_two_marker_segment_left_as_three_ids_becomes_two(monkeypatch, k):
     long gaps not deferred."""
     from skeleton import markersets
     fig, mo, X, owner = _bench_figure(k)
-    monkeypatch.setattr(markersets, "_two_of_three", lambda X, groups, *a, **kw: groups)
+    _set_step(monkeypatch, "_two_of_three", lambda X, groups, *a, **kw: groups)
     # step 8 (after step 7) would make the mixed id of 719 pure, but not join the split
-    monkeypatch.setattr(markersets, "_sphere_exchanges",
-                        lambda X, groups, *a, **kw: (groups, False))
+    _set_step(monkeypatch, "_sphere_exchanges",
+              lambda X, groups, *a, **kw: (groups, False))
     _before_stop39(monkeypatch)
     kept = merge_fragments(X, **NO_DEFER)
     mixed = [g for g in kept.groups if len({int(owner[f]) for f in g}) > 1]
@@ -408,7 +422,7 @@ def test_three_ids_of_two_segments_stay_apart(monkeypatch):
     markers are rigid to each other (step 4's ``rigid_pair``), so it leaves them apart."""
     from skeleton import markersets
     fig, mo, X, owner = _bench_figure(403)
-    monkeypatch.setattr(markersets, "_two_of_three", lambda X, groups, *a, **kw: groups)
+    _set_step(monkeypatch, "_two_of_three", lambda X, groups, *a, **kw: groups)
     before = merge_fragments(X)
     monkeypatch.undo()
     assert before.n_markers > before.n_min              # step 7 looks at this figure
@@ -432,14 +446,14 @@ def _before_stop39(monkeypatch):
     telling judges, step 8's jump veto, step 4b's further-off and misfit vetoes, step 4c's
     one free marker, its unjudged exchanges and its continuity moves, and the continuity
     join after step 8 off, and step 3's order as before stop 50 (``OLD_ORDER_SD_WEIGHT``)
-    (skeleton.markersets' flags): they put several of the failures below right as well, a
+    (skeleton.markersets.rules' flags): they put several of the failures below right as well, a
     second line of repair, so a test that shows one step's own effect by turning that
     step off turns them off too."""
     import skeleton.markersets as ms
     for name in (STOP39_RULES + STOP40_RULES + STOP41_RULES + STOP42_RULES
                  + STOP44_RULES):
-        monkeypatch.setattr(ms, name, False)
-    monkeypatch.setattr(ms, "ORDER_SD_WEIGHT", OLD_ORDER_SD_WEIGHT)
+        monkeypatch.setattr(ms.rules, name, False)
+    monkeypatch.setattr(ms.rules, "ORDER_SD_WEIGHT", OLD_ORDER_SD_WEIGHT)
 
 
 def _mixed_with(monkeypatch, X, owner, step, merge_kw=None, before_stop39=False, **kw):
@@ -449,7 +463,7 @@ def _mixed_with(monkeypatch, X, owner, step, merge_kw=None, before_stop39=False,
     import functools
 
     import skeleton.markersets as ms
-    monkeypatch.setattr(ms, step, functools.partial(getattr(ms, step), **kw))
+    _set_step(monkeypatch, step, functools.partial(getattr(ms, step), **kw))
     if before_stop39:
         _before_stop39(monkeypatch)
     out = [sorted({int(owner[f]) for f in g})
@@ -474,13 +488,13 @@ def test_cross_exchange_never_flips_a_rigid_pair(monkeypatch):
     import functools
 
     import skeleton.markersets as ms
-    monkeypatch.setattr(ms, "_sphere_exchanges",
-                        functools.partial(ms._sphere_exchanges, direction_margin=np.inf))
+    _set_step(monkeypatch, "_sphere_exchanges",
+              functools.partial(ms._sphere_exchanges, direction_margin=np.inf))
     # ... and since stop 46 step 8's continuity exchanges (gain 2) would as well
-    monkeypatch.setattr(ms, "CONTINUITY_EXCHANGE_MARGIN", 4.0)
+    monkeypatch.setattr(ms.rules, "CONTINUITY_EXCHANGE_MARGIN", 4.0)
     # ... and since stop 53 step 4b counts no partner rigid to no alternative's track
     # (``RIGID_SOMEWHERE``), which leaves these voters' partners out
-    monkeypatch.setattr(ms, "RIGID_SOMEWHERE", False)
+    monkeypatch.setattr(ms.rules, "RIGID_SOMEWHERE", False)
     assert _mixed_with(monkeypatch, X, owner, "_repair_cross",
                        turn_margin=np.inf) == [[11, 12], [11, 12]]
     assert fig.marker_segment[11] == fig.marker_segment[12]
@@ -502,7 +516,7 @@ def test_cross_exchange_never_puts_a_piece_off_a_rigid_body(monkeypatch):
     # since stop 36 the speed gate blocks that move too, so it is off here; since stop 55
     # step 4c's BODY_FITS_FREE moves the piece back, so it is off too)
     import skeleton.markersets as ms
-    monkeypatch.setattr(ms, "BODY_FITS_FREE", False)
+    monkeypatch.setattr(ms.rules, "BODY_FITS_FREE", False)
     assert _mixed_with(monkeypatch, X, owner, "_repair_cross", merge_kw=NO_GATE,
                        body_veto=False) == [[18, 27]]
     assert fig.marker_segment[18] != fig.marker_segment[27]
@@ -536,7 +550,7 @@ def test_cross_exchange_may_move_a_piece_already_off_its_body(monkeypatch):
     (Since stop 51 the loose passes' order mixes only two; set up with the order before.)"""
     import skeleton.markersets as ms
     fig, mo, X, owner = _bench_figure(799)
-    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
+    monkeypatch.setattr(ms.rules, "LOOSE_BY_CONTINUITY", False)
     before = merge_fragments(X, repair_swaps=False)
     mixed = [g for g in before.groups if len({int(owner[f]) for f in g}) > 1]
     assert len(mixed) == 3                      # the failure this test guards against
@@ -546,16 +560,20 @@ def test_cross_exchange_may_move_a_piece_already_off_its_body(monkeypatch):
 
 
 def _right_then_off(monkeypatch, k, flag, value, **also):
-    """Benchmark figure k merged right (with the module constants ``also`` of
-    skeleton.markersets set); then merged again with the constant ``flag`` set to
-    ``value`` too (the failure a test guards against). Returns (fig, that merge, the
-    physical markers (sorted) of each of its ids)."""
+    """Benchmark figure k merged right (with the constants ``also`` of
+    skeleton.markersets.rules set); then merged again with the constant ``flag`` set to
+    ``value`` too (a name starting with "_" is a step function, set by ``_set_step``; the
+    failure a test guards against). Returns (fig, that merge, the physical markers
+    (sorted) of each of its ids)."""
     import skeleton.markersets as ms
     for name, v in also.items():
-        monkeypatch.setattr(ms, name, v)
+        monkeypatch.setattr(ms.rules, name, v)
     fig, mo, X, owner = _bench_figure(k)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
-    monkeypatch.setattr(ms, flag, value)
+    if flag.startswith("_"):
+        _set_step(monkeypatch, flag, value)
+    else:
+        monkeypatch.setattr(ms.rules, flag, value)
     off = merge_fragments(X)
     return fig, off, [sorted({int(owner[f]) for f in g}) for g in off.groups]
 
@@ -606,8 +624,8 @@ def test_two_markers_hidden_together_are_told_apart_by_their_joint_spheres(monke
     # since stop 51 the loose passes' order, so it is set as before, and since stop 53
     # step 4c's move to the one open marker, ONE_OPEN, puts 221's piece back, so it is off)
     import skeleton.markersets as ms
-    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
-    monkeypatch.setattr(ms, "ONE_OPEN", False)
+    monkeypatch.setattr(ms.rules, "LOOSE_BY_CONTINUITY", False)
+    monkeypatch.setattr(ms.rules, "ONE_OPEN", False)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", merge_kw=NO_GATE,
                        max_rounds=0) == [pair]
 
@@ -634,8 +652,8 @@ def test_two_markers_exchanged_are_told_apart_by_their_direction_in_a_neighbour(
     # keep 1646's pair from being exchanged, and with step 4b's jump veto per marker,
     # JUMPS_PER_MARKER, the pair is not left exchanged either: both are off here)
     import skeleton.markersets as ms
-    monkeypatch.setattr(ms, "RIGID_SOMEWHERE", False)
-    monkeypatch.setattr(ms, "JUMPS_PER_MARKER", False)
+    monkeypatch.setattr(ms.rules, "RIGID_SOMEWHERE", False)
+    monkeypatch.setattr(ms.rules, "JUMPS_PER_MARKER", False)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", merge_kw=NO_DEFER,
                        before_stop39=True, direction_margin=np.inf) == [pair, pair]
 
@@ -748,7 +766,7 @@ def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     stop 42 step 4c keeps the first fragment where it is, its one judge there finding it
     on marker 17 too (``TELLING_JUDGES``); it is shown with that rule off.)"""
     import skeleton.markersets as ms
-    monkeypatch.setattr(ms, "TELLING_JUDGES", False)
+    monkeypatch.setattr(ms.rules, "TELLING_JUDGES", False)
     fig, mo, X, owner = _bench_figure(1833)
     after8 = []
     step8 = ms._sphere_exchanges
@@ -758,7 +776,7 @@ def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
         after8.append(out[0])
         return out
 
-    monkeypatch.setattr(ms, "_sphere_exchanges", spy)
+    _set_step(monkeypatch, "_sphere_exchanges", spy)
     _check(fig, X, owner, merge_fragments(X, **NO_DEFER), mo.markers)
     # step 8 left marker 17 as two ids (the state the final merge puts right)
     assert sum(17 in {int(owner[f]) for f in g} for g in after8[0]) == 2
@@ -791,8 +809,8 @@ def test_no_merge_crosses_a_gap_faster_than_any_fragment_moves(monkeypatch):
     _check(fig, X, owner, merge_fragments(X), mo.markers)
     # since stop 46 step 4c's continuity move puts the wrong piece right again, and since
     # stop 51 the loose passes' order does not make it
-    monkeypatch.setattr(ms, "CONTINUITY_OFF_BODY", False)
-    monkeypatch.setattr(ms, "LOOSE_BY_CONTINUITY", False)
+    monkeypatch.setattr(ms.rules, "CONTINUITY_OFF_BODY", False)
+    monkeypatch.setattr(ms.rules, "LOOSE_BY_CONTINUITY", False)
     off = merge_fragments(X, speed_gate=None)
     assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
 
@@ -808,7 +826,7 @@ def test_no_later_step_moves_a_piece_faster_than_any_fragment_moves(monkeypatch)
     fig, mo, X, owner = _bench_figure(2555)
     _check(fig, X, owner, merge_fragments(X), mo.markers)
     _before_stop39(monkeypatch)
-    monkeypatch.setattr(ms, "RIGID_SOMEWHERE", False)
+    monkeypatch.setattr(ms.rules, "RIGID_SOMEWHERE", False)
     off = merge_fragments(X, speed_gate=None)
     assert any(len({int(owner[f]) for f in g}) > 1 for g in off.groups)
 
@@ -944,7 +962,7 @@ def test_an_end_piece_left_as_its_own_id_is_joined_by_continuity(monkeypatch, k,
     import skeleton.markersets as ms
     fig, off, ids = _right_then_off(monkeypatch, k, "CONTINUITY_JOINS", False)
     assert (off.n_markers == fig.n_markers) == on_sphere
-    monkeypatch.setattr(ms, "SPHERE_JOINS", False)
+    monkeypatch.setattr(ms.rules, "SPHERE_JOINS", False)
     _, _, X, owner = _bench_figure(k)
     off = merge_fragments(X)
     ids = [sorted({int(owner[f]) for f in g}) for g in off.groups]

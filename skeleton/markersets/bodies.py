@@ -1,0 +1,194 @@
+"""Body frames and joint spheres (steps 8 and 11): one-body groups of tracks, their Kabsch
+frames, frames extended with a borrowed joint, sphere fits and their verdicts.
+
+Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import rules
+from .tracks import _kabsch_batch
+
+
+def _sphere_fit(y) -> tuple:
+    """(centre, radius, rms residual) of points ``y`` (N, 3): Kasa's algebraic fit."""
+    A = np.c_[2 * y, np.ones(len(y))]
+    sol = np.linalg.lstsq(A, (y ** 2).sum(1), rcond=None)[0]
+    c = sol[:3]
+    r = float(np.sqrt(max(sol[3] + c @ c, 0.0)))
+    return c, r, float(np.sqrt(np.mean((np.linalg.norm(y - c, axis=1) - r) ** 2)))
+
+
+def _bodies(one, S) -> list:
+    """Sets (sorted tuples, >= 3) of tracks that all move as one body with each other
+    (``one``: (M, M) bool): each track with its one-body partners taken in order of sd
+    while they move as one body with every track taken so far."""
+    out = set()
+    for m in range(one.shape[0]):
+        body = [m]
+        for j in sorted(np.flatnonzero(one[m]), key=lambda j: S[m, j]):
+            if one[j, body].all():
+                body.append(int(j))
+        if len(body) >= 3:
+            out.add(tuple(sorted(body)))
+    return sorted(out)
+
+
+def _body_frame(P, body) -> tuple:
+    """(frames, R, t): the frames all tracks of ``body`` are seen and, in each, the rigid
+    motion y = R x + t taking world points into the body's frame (its tracks' positions in
+    the first of those frames)."""
+    fr = np.flatnonzero(~np.isnan(P[:, list(body), 0]).any(1))
+    src = P[fr][:, list(body)]
+    R, t = _kabsch_batch(src, np.broadcast_to(src[:1], src.shape))
+    return fr, R, t
+
+
+def _one_body_frames(P, S, s0, body_sd, body_frames) -> tuple:
+    """(common, one, frames) of tracks P (T, M, 3) with pair sds S: the frames each pair is
+    seen in together (M, M), the pairs moving as one body (sd <= ``body_sd`` x s0 over >=
+    ``body_frames`` common frames), and the frame (``_body_frame``) of each body
+    (``_bodies``) seen in >= ``body_frames`` frames. Steps 8 and 11."""
+    seen = ~np.isnan(P[..., 0])
+    common = seen.T.astype(np.int64) @ seen.astype(np.int64)
+    with np.errstate(invalid="ignore"):
+        one = (S <= body_sd * s0) & (common >= body_frames)
+    frames = {b: _body_frame(P, b) for b in _bodies(one, S)}
+    return common, one, {b: v for b, v in frames.items() if v[0].size >= body_frames}
+
+
+def _fixed_point(fa, fb, min_frames=50) -> tuple | None:
+    """(u, v, rms, frames) of the point fixed in two bodies' frames (``_body_frame``: u in
+    the first's, v in the second's): the joint between them, linear least squares over the
+    frames both are seen in (R_a^T (u - t_a) = R_b^T (v - t_b)); rms the world distance
+    between the two images. None under ``min_frames`` common frames."""
+    fra, Ra, ta = fa
+    frb, Rb, tb = fb
+    _, ia, ib = np.intersect1d(fra, frb, return_indices=True)
+    if ia.size < min_frames:
+        return None
+    RaT, RbT = np.transpose(Ra[ia], (0, 2, 1)), np.transpose(Rb[ib], (0, 2, 1))
+    A = np.concatenate([RaT, -RbT], 2).reshape(-1, 6)
+    b = (np.einsum("bij,bj->bi", RaT, ta[ia])
+         - np.einsum("bij,bj->bi", RbT, tb[ib])).reshape(-1)
+    sol = np.linalg.lstsq(A, b, rcond=1e-6)[0]   # min-norm on a hinge's axis
+    r = (A @ sol - b).reshape(-1, 3)
+    return sol[:3], sol[3:], float(np.sqrt((r ** 2).sum(1).mean())), int(ia.size)
+
+
+def _virtual_frames(P, frames, s0, joint_rms=rules.VIRTUAL_JOINT_RMS,
+                    min_lever=rules.VIRTUAL_MIN_LEVER_M) -> dict:
+    """Each body's frame (``_one_body_frames``' ``frames``) extended to the frames where
+    only two or more of its tracks are seen, with the joint to its best-fitting
+    neighbouring body (``_fixed_point``, rms <= ``joint_rms`` x s0, that body seen in
+    full) as a third point: (frames, R, t) as ``_body_frame`` gives, for bodies that gain
+    frames so. A third point within ``min_lever`` of the line through the two tracks
+    seen leaves the roll about it free: those frames are left out. Step 8 (6245)."""
+    out = {}
+    for B, (frB, RB, tB) in frames.items():
+        best = None
+        for A, fa in frames.items():
+            if set(A) & set(B):
+                continue
+            fp = _fixed_point(fa, frames[B])
+            if fp is not None and fp[2] <= joint_rms * s0 and (best is None
+                                                                or fp[2] < best[1][2]):
+                best = (A, fp)
+        if best is None:
+            continue
+        A, (u, v, _, _) = best
+        frA, RA, tA = frames[A]
+        ref = P[frB[0]][list(B)]               # B's tracks in B's frame
+        Q = P[frA][:, list(B)]
+        seen = ~np.isnan(Q[..., 0])
+        extra = (seen.sum(1) >= 2) & ~seen.all(1)
+        if not extra.any():
+            continue
+        c = np.einsum("bji,bj->bi", RA[extra], u - tA[extra])   # the joint in the world
+        fr, R, t = [frB], [RB], [tB]
+        for key in {tuple(r) for r in seen[extra]}:
+            cols = np.flatnonzero(key)
+            d = ref[cols[1]] - ref[cols[0]]
+            w = v - ref[cols[0]]
+            if np.linalg.norm(np.cross(d, w)) / np.linalg.norm(d) < min_lever:
+                continue
+            rows = (seen[extra] == key).all(1)
+            src = np.concatenate([Q[extra][rows][:, cols], c[rows][:, None]], 1)
+            dst = np.broadcast_to(np.vstack([ref[cols], v]), src.shape)
+            Rk, tk = _kabsch_batch(src, dst)
+            fr.append(frA[extra][rows])
+            R.append(Rk)
+            t.append(tk)
+        if len(fr) > 1:
+            fr = np.concatenate(fr)
+            o = np.argsort(fr, kind="stable")
+            out[B] = (fr[o], np.concatenate(R)[o], np.concatenate(t)[o])
+    return out
+
+
+def _points_in(frames, Y):
+    """A function (body, column) -> the points of column ``Y[:, column]`` seen in the frames
+    of ``body`` (a key of ``frames``, as ``_one_body_frames`` gives), in the body's frame;
+    each computed once."""
+    cache = {}
+
+    def points(body, c):
+        if (body, c) not in cache:
+            fr, R, t = frames[body]
+            x = Y[fr, c]
+            ok = ~np.isnan(x[:, 0])
+            cache[body, c] = np.einsum("bij,bj->bi", R[ok], x[ok]) + t[ok]
+        return cache[body, c]
+    return points
+
+
+def _common_sphere(Ys) -> list:
+    """Residuals |y - c| - r_i of each point set in ``Ys`` about one centre c with a radius
+    per set (Kasa's algebraic fit, shared centre)."""
+    n = len(Ys)
+    A = np.zeros((sum(len(y) for y in Ys), 3 + n))
+    A[:, :3] = 2 * np.concatenate(Ys)
+    i = 0
+    for k, y in enumerate(Ys):
+        A[i:i + len(y), 3 + k] = 1.0
+        i += len(y)
+    b = np.concatenate([(y ** 2).sum(1) for y in Ys])
+    sol = np.linalg.lstsq(A, b, rcond=None)[0]
+    c = sol[:3]
+    return [np.linalg.norm(y - c, axis=1) - np.sqrt(max(sol[3 + k] + c @ c, 0.0))
+            for k, y in enumerate(Ys)]
+
+
+def _sphere_verdict(pts, ga, gb, na, nb, moved):
+    """(sum of squares kept, exchanged, mean square of the moved pieces kept, exchanged,
+    points) of two markers' fragments ``pts`` (fragment -> points in a body's frame) fitted
+    on one common sphere centre, as ``ga``/``gb`` (current) and ``na``/``nb`` (exchanged);
+    None where a marker has < 50 points or the moved pieces < 5."""
+    out = []
+    for x, y in ((ga, gb), (na, nb)):
+        ya = [pts[f] for f in x]
+        yb = [pts[f] for f in y]
+        if sum(map(len, ya)) < 50 or sum(map(len, yb)) < 50:
+            return None
+        ra, rb = _common_sphere([np.concatenate(ya), np.concatenate(yb)])
+        res = np.r_[ra, rb]
+        m = np.concatenate([np.full(len(pts[f]), f in moved) for f in list(x) + list(y)])
+        out.append((float(res @ res), float(res[m] @ res[m]), int(m.sum()), res.size))
+    (sk, pk, nd, n), (sm, pm, _, _) = out
+    if nd < 5:
+        return None
+    return sk, sm, pk / nd, pm / nd, n
+
+
+def _direction_spread(ends, frame) -> float:
+    """Mean resultant length (0-1) of the unit direction from the first to the second of
+    two markers' tracks ``ends`` (T, 2, 3) in a body's ``frame`` (``_body_frame``), over the
+    frames both are seen with the body; NaN under ``DIRECTION_FRAMES`` such frames."""
+    fr, R, _ = frame
+    d = np.einsum("bij,bj->bi", R, ends[fr, 1] - ends[fr, 0])
+    d = d[~np.isnan(d[:, 0])]
+    if len(d) < rules.DIRECTION_FRAMES:
+        return float("nan")
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return float(np.linalg.norm(d.mean(0)))

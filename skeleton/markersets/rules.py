@@ -1,0 +1,78 @@
+"""Every switch and threshold of the marker-set repairs, in one place.
+
+The steps read them here at call time (``rules.NAME``), so a test or a screen
+(``benchmarks/screen_markersets.py --set/--compare``) that sets
+``skeleton.markersets.rules.NAME`` changes the merge everywhere. A flag's comment names
+the step, the rule and the figure it was chosen on; the step modules' docstrings give the
+measurements.
+"""
+
+DIRECTION_MARGIN = 0.1  # step 8: the least gain in the mean resultant length of two markers'
+                        # direction, in the frame of the body that holds it tightest, for an
+                        # exchange (``spheres``);        1 mm noise on markers >= 20 mm apart
+                        # costs ~0.005
+DIRECTION_FRAMES = 50   # ... over at least this many frames both are seen with the body
+DIRECTION_SEES_MOVED = True   # step 8: a body judges the direction only where it sees the
+DIRECTION_MOVED_FRAMES = 5    # ... moved pieces for at least this many frames
+
+TWO_OF_FOUR = True   # step 7 also takes two rigid pairs of ids that never share a frame
+ONE_SPLIT = True     # step 7 takes the one split where the fragments split only one way
+PARTNER_SPLITS = True   # ... and judges ids with a segment partner too, by turns and jumps
+
+CONTINUITY_JOINS = True  # step 7b: markers left as two ids are joined by motion continuity
+JOINS_AFTER_EXCHANGES = True  # step 9: and again where step 8 exchanged (figure 4881)
+
+SPLIT_JOINS = True  # step 10: a marker holding two others' pieces is split and joined
+
+SPHERE_JOINS = True  # step 11: a marker left as two ids is joined where joint spheres judge
+SPHERE_FIT_Z = 3.0      # ... the piece fits a marker's sphere within this x the sphere's rms
+SPHERE_MISFIT_Z = 6.0   # ... and is off every other candidate's by at least this x its rms
+SPHERE_POINTS = 5       # ... on at least this many of the piece's frames in the body
+
+TURN_FALLBACK = True   # step 4: a pair moving as one body whose partners decide nothing turns
+
+KEPT_TRACK_VOTES = True    # step 4b: a marker without voters is judged by its kept track
+KEPT_TRACK_JUDGES_VOTERS = False   # ... also where the piece moved in is a voter itself
+
+MISFITS_ARE_BAD = True   # step 4b: a marker holding a misfit piece (step 4c's) is examined
+LESS_OFF_BODY = True     # step 4b: nor a move off one body onto one it is further off
+RIGID_SOMEWHERE = True   # step 4b: a voter's partner counts where rigid to some alternative (7429)
+JUMPS_PER_MARKER = True  # step 4b's jump veto: a partner fits per marker, not per pair (9533)
+NO_NEW_MISFITS = True    # step 4b: nor one that makes a fitting piece a misfit (figure 4430)
+
+UNJUDGED_MOVES = True   # step 4c: a piece no judge sees on its own marker moves where it fits
+UNJUDGED_EVIDENCE = 20  # ... on judges that see it for this many frames in all
+
+MISFIT_EXCHANGES = True  # step 4c: a misfit with no free marker to go to is exchanged
+EXCHANGE_UNJUDGED = True  # step 4c: a misfit may be exchanged onto a marker where no
+#                           track judges it, for a piece that fits (figure 4251)
+ONLY_FREE_MARKER = True  # step 4c: a piece off its body that no judge places goes to the one
+#                          marker free over its frames (figure 4662)
+ONE_UNJUDGED_FREE = True  # ... or, of several free markers, to the one where no track
+#                           finds it off (figure 5221)
+CONTINUITY_OPEN = True   # step 4c: a misfit no marker takes goes to the free marker where
+#                          nothing finds it off that continues it best (figure 4462)
+CONTINUITY_OPEN_MARGIN = 2.0   # ... by this much in step 8's continuity cost over the next
+ONE_OPEN = True          # ... or, the one such marker, where it continues it better (9778)
+CONTINUITY_OFF_BODY = True   # ... also an off-body piece with several free markers where
+#                              nothing finds it off (ONLY_FREE_MARKER's case; figure 2738)
+BODY_FITS_FREE = True    # step 4c: an off-body piece no marker takes goes to the one free
+#                          marker whose one-body tracks all hold it (figure 10847)
+TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
+#                          also find the piece on its own (figure 4083)
+
+ORDER_SD_WEIGHT = 1.0  # step 3's order: the whole sd of the least rigid partner (5991)
+LOOSE_BY_CONTINUITY = True  # step 3's loose passes: order by max(distance, scaled miss)
+ACCEL_GAP_FRAMES = 10.0     # ... the miss divided by max(1, (gap / this)^2) (7107, 6555)
+
+VIRTUAL_JOINT_RMS = 5.0      # step 8: the joint a body's frame borrows fits within this x s0
+VIRTUAL_MIN_LEVER_M = 0.02   # ... and lies this far off the line through its two tracks seen
+
+VIRTUAL_FRAMES = True  # step 8: spheres also in frames where a body shows two tracks (6245)
+VIRTUAL_FIT_RMS = 2.0  # ... judging there within this x s0 rms (true neighbours: 91 % <= 2)
+CONTINUITY_EXCHANGES = True  # step 8: exchanges no sphere or direction finds, by continuity
+CONTESTED_DIRECTIONS = True  # ... a direction veto needs no body for the exchange (8759)
+STEP8_JUMPS = True  # step 8 makes no exchange that step 4's jump test would undo (4455)
+CONTINUITY_MARGIN = 4.0      # steps 7b and 10: the most a join may cost in continuity
+CONTINUITY_EXCHANGE_MARGIN = 2.0   # step 8: the least gain in the continuity cost (1304)
+CONTINUITY_MM_PER_FRAME = (0.6, 0.009)   # a junction's typical miss: a x gap + b x gap^2 (mm)

@@ -1,0 +1,353 @@
+"""Steps 8 and 11 of the marker-set merge: joint spheres, directions and continuity.
+
+8. joint spheres (``_sphere_exchanges``): a marker turns about its segment's joint with a
+   neighbouring segment, so in that segment's frame it stays on a sphere about the joint.
+   Two markers moving as one body (sd <= 1.5 x s0 over >= 100 frames) that no earlier step
+   could tell apart (a 2-marker segment whose markers are both hidden across one gap,
+   figures 221 and 718: no partner, and the direction turned too far to judge) are told by
+   it. A body is three or more tracks moving as one body with each other (its frame: Kabsch
+   onto their positions in the first frame all are seen); a pair's every overlap-free
+   exchange of a run of fragments (each partition once) is fitted, in the frame of every
+   body that holds neither, by one sphere centre (the joint, common to both markers) and a
+   radius per marker (Kasa's algebraic fit), for the current assignment and the exchanged
+   one. A body judges when the better assignment fits within ``fit_rms`` (1.5) x s0 rms (a
+   neighbour across one joint; bodies further away fit worse). The exchange is made when
+   on some judge the exchanged pieces (the smaller side) sit >= ``min_misfit`` (2) residual
+   sds off rms under the current assignment and under half that under the exchanged one,
+   and no judge finds the reverse; the largest gain in the sum of squares first, one per
+   round. Designed on figures 0-199 (all merged right by steps 1-7; 227 exchanges a judge
+   preferred by up to 241 residual variances were effects of 1.32 sd at most, 1.4x the
+   exchanged fit) and the failures 221, 718, 1056, 1097 (2.78-16.7 sd, 3.0-17x the
+   exchanged fit). ``/tmp`` screen, one ``merge_fragments`` per figure as
+   ``bench_markersets.py`` builds them: figures 0-999 991 -> 993 of 1000 (fixed 221, 718),
+   1000-1119 116 -> 118 (fixed 1056, 1097), none lost; held out, first run 1120-1239 (the
+   code before step 8 and this one): 116 -> 117 of 120 (fixed 1126, none lost); 1240-1359:
+   117 and 117, identical per figure (1304 and 1306 are same-segment swaps it measured below
+   its thresholds: 2.17 sd at 1.99x the exchanged fit, and 1.34 sd). It cannot
+   judge a 2-marker segment whose neighbours have fewer than three markers (157: its only
+   neighbour has two; 1210), nor pieces of two segments (569, 1026, 1037, 1183, 1239: the
+   test compares two markers on one centre; 569's siblings share no body of >= 3 markers).
+   Where the spheres cannot decide (the two markers about as far from their joint), the
+   direction between the two markers does (stop 34): in a body's frame it turns only by the
+   joints' ranges of motion between them (a neighbour's: one joint's), and an exchange of a
+   run of fragments flips it over the frames it moves. For both assignments, the mean
+   resultant length of the unit direction over the frames both markers are seen with the
+   body (at least ``DIRECTION_FRAMES``); on the body where the larger of the two is highest,
+   an exchange that raises it by ``DIRECTION_MARGIN`` (0.1) is made when no body finds the
+   reverse by as much and no sphere judge vetoes it; only when no sphere exchange is found,
+   the largest rise first. 1 mm noise on markers 20 mm apart lowers the length by ~0.005.
+   Measured before the margin was chosen (``/tmp`` collector, figures 0-299, the 4753
+   overlap-free alternatives step 8 scored): none of the 4750 that would have left a
+   marker less pure raised the length on that body (largest rise 0.000); the two right
+   ones raised it by 0.144 (157) and 0 (221, which the spheres repair). A piece seen only
+   where the other marker is hidden leaves the direction blind (1304: an 18-frame end
+   piece). Fixed: 157 (failing since stop 16; its only neighbour has two markers, and a
+   sibling, two joints away, judges: 0.83 -> 0.98) and held-out 1504 and 1646 (first runs at
+   stop 34: 2-marker segments whose markers sit about equally far from their joint; in
+   1646's parent's frame 0.36 -> 0.94). ``/tmp`` screen of figures 0-1719, one
+   ``merge_fragments`` per figure as ``bench_markersets.py`` builds them: 0-999 993 -> 994
+   of 1000, 1000-1479 (held out at stops 25-31) the same 11 failures, 1480-1719 (first run
+   at stop 34, on the code before) 235 -> 237 of 240; none lost. Held out, first run
+   1720-1839 with and without it: 117 of 120 both, identical per figure (1749, 1750:
+   pieces of two segments; 1833: two ids for one marker). Real recordings: merged groups
+   identical with and without it (all 9 files of ../shared/data/c3d). A body judges the
+   direction only where it sees the moved pieces for >= ``DIRECTION_MOVED_FRAMES`` (5)
+   frames (``DIRECTION_SEES_MOVED``): a body whose frames miss them finds both
+   assignments alike and, holding the direction tightest, hid every other body's verdict
+   (figure 2710: two start pieces of a 2-marker segment's markers exchanged, 32 and 46
+   frames; a body seeing none of those frames held the direction at 0.985 both ways,
+   eight others rose by 0.07-0.29 with the exchange). Where neither the spheres nor the
+   direction find an exchange, motion continuity may (``CONTINUITY_EXCHANGES``): a piece
+   seen only while the other marker is hidden leaves the direction blind, and two markers
+   about as far from their joint leave the spheres alike, but a piece of the other marker
+   jumps at both its ends. A marker's continuity cost is the sum over its changes of
+   fragment of log(1 + (miss / m)^2): the miss of step 3's constant-velocity lines, m the
+   typical miss of one marker across that gap (0.6 mm x gap + 0.009 mm x gap^2, step 3's
+   medians). The exchange that lowers the pair's cost most is made when it lowers it by
+   ``CONTINUITY_EXCHANGE_MARGIN`` (2; 4 until stop 46), no sphere judge vetoes it and no
+   body finds its direction worse by the direction margin - unless another body finds it
+   better by as much (``CONTESTED_DIRECTIONS``, stop 53; held-out figure 8759: markers 52
+   and 53 of a 2-marker segment, 20.5 mm apart, held each other's end pieces; the exchange
+   gained 5.80, and 1 of 14 bodies held the direction tighter as merged, by 0.104, while 7
+   held it tighter exchanged, by 0.1-0.32; held-out 9460: markers 36 and 37 of a
+   2-marker segment stay exchanged without the rule). Measured before the margin was
+   first chosen (``/tmp`` collector, figures 0-299, all merged right: the best alternative
+   of each of the 4026 one-body pairs step 8 looks at in the final merge; before the later
+   vetoes): every one would have mixed markers, and the largest cost they lowered was 2.41
+   (7 of 4026 at 1 or more). The failures it fixes lowered it by 8.51 (3293, held out at
+   stop 39: marker 43's 18-frame piece on marker 42, 79 and 53 mm off at gaps of 11 and 4
+   frames, 6.3 and 16.4 mm on its own marker at 7 and 14; spheres 1.51 and 1.35 residual
+   sds), 12.07 (611), 4.18 (1210) and 8.92 (1306); 1304's right exchange lowers it by 2.43
+   only and stayed. At stop 46 a ``/tmp`` screen of figures 0-2699, 4040-4759 and 5480-5719
+   (3660) logged every alternative that reached this test (with the later vetoes: the jump
+   veto below, the direction seen on moved pieces) and lowered the cost by 1 or more: of
+   28, 24 took the frames on a wrong marker to 0 (1.27-12.07) and three (1306, 2.15) from
+   122 to 58; the other, in 1304 at 1.59, moved as many as it mended. The margin went to 2,
+   fixing 1304 and 4385 (held out at stop 42, 3.52); the figures with an alternative at 2-4
+   (1306, 1672, 1773, 2395, 4063) were merged again with it and stay right.
+   ``/tmp`` screen with stop 40's three rules (4c's exchanges, step 7b, this), one
+   ``merge_fragments`` per figure as ``bench_markersets.py`` builds them: figures 0-1839
+   1834 -> 1839/1840 (fixed 339, 611, 1210, 1306, 1371; none lost), 1840-3559 1718/1720
+   (2539, 2738 fail); held out, first run 3800-4039 with the rules off and on: 240/240
+   both; real recordings' merged groups identical with and without them. No exchange is
+   made (sphere, direction or continuity) that step 4's jump test would undo: one that
+   raises ``_jumps`` on the tracks rigid to every fragment of both markers by
+   ``jump_margin`` x s0 squared (``STEP8_JUMPS``; figure 4455, held out at stop 41: the
+   direction test exchanged the last runs of two markers of a 4-marker segment, 130 mm
+   apart, whose two segment partners put the jump cost at 7.8 mm^2 before and 2.2e6 after,
+   bound 19.7; step 4b has the same veto).
+   Where a body is seen in full over fewer than 5 of the moved pieces' frames (or a marker
+   has < 50 points), the spheres are fitted again in the body's frame extended to the
+   frames where it shows two or more of its tracks (``VIRTUAL_FRAMES``, stop 54): the
+   joint it shares with a neighbouring body seen in full there (``_fixed_point``: the
+   point fixed in both frames, linear least squares; the neighbour fitting best, within
+   ``VIRTUAL_JOINT_RMS`` (5) x s0, the joint >= 20 mm off the line through the two tracks)
+   is the third point of a Kabsch fit. Such a judge counts within ``VIRTUAL_FIT_RMS`` (2)
+   x s0 rms, not 1.5: measured with the true groups on figures 0-39 (``/tmp`` collector,
+   every same-segment one-body pair and every one-segment body), the sphere rms in a body
+   across one joint is <= 1.5 x s0 for 77 % of 2014 (body, pair) cases in full frames and
+   80 % of 1876 in the extended frames, <= 2 for 88 % and 91 % (median 1.15 and 1.08: the
+   extended frames are no worse), while bodies further away fit within 1.5 for 3 % and
+   within 2 for 6-7 % of ~10,000. Figure 6245 (held out at stop 48): both markers of
+   2-marker segment 2 are lost (marker 8 at frame 356, 7 at 365) and marker 8's last 16
+   frames come back alone, given to marker 7 by the linkage; the parent's three markers
+   are seen together over 2 of them. In its extended frame (two markers and its joint
+   with the root) the piece sits 5.2 mm inside marker 7's sphere and 0.4 mm off marker
+   8's; that sphere fits at 1.59 x s0. ``benchmarks/screen_markersets.py --compare
+   VIRTUAL_FRAMES=False`` (stop 54): 4892 cached figures (0-1737, 2146-2690, 3880-5917,
+   7760-7793, 9160-9185, 9521-9999 and 32 named) all right with it, acting on 6245 only;
+   2691-3572 and held-out first runs 10000-10881 (full merges) it acted on none.
+11. sphere joins (``_join_by_spheres``, ``SPHERE_JOINS``): where the steps above still end
+   with more markers than the bound, a short piece may have no continuation that motion
+   or pose alignment can judge (figure 8203, held out at stop 51: marker 21's first 11
+   frames, seen while the other two markers of its segment are hidden, lie 126.5 mm
+   pose-aligned on partners across a joint and 90 mm off the motion from their own marker
+   38 frames on). In the frame of each body (step 8's: >= 3 tracks moving as one, >= 100
+   frames) a marker turning about its joint with that body keeps a sphere (Kasa fit, rms
+   <= 1.5 x s0): two markers that never share a frame are joined when the one with fewer
+   points in a body lies on the other's sphere within ``SPHERE_FIT_Z`` (3) x its rms on
+   some body and off it on none (``SPHERE_MISFIT_Z``, 6), and every other marker either of
+   them could join is off, by >= 6 x the rms, on some body; the best fit first, none that
+   crosses a gap faster than step 3's gate. On 8203 the piece lies on its marker's sphere
+   about the parent at 1.7 x its rms and 89 and 172 x off the two other markers' (113 and
+   222 mm). On the benchmark's figures (400 frames, 1-3 gaps of 3-39 frames per marker,
+   fragments < 10 frames dropped: at most 3 of the <= 4 runs) every marker is seen in
+   >= 400 - 117 - 27 = 256 frames, so two markers share >= 112 frames and the step finds
+   nothing to join on a figure merged right: it can only change figures left wrong.
+   With step 7b off it also joins figure 1371's 10-frame end piece, which step 7b joins.
+
+Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import rules
+from .bodies import (
+    _direction_spread, _one_body_frames, _points_in, _sphere_fit, _sphere_verdict,
+    _virtual_frames
+)
+from .continuity import _continuity_cost
+from .judges import _jumps
+from .tracks import (
+    _cross_alternatives, _exchange, _fragment_sd, _paced, _pair_sd, _rigid_to_all, _spans,
+    _tracks
+)
+
+
+def _join_by_spheres(X, groups, n_min, min_frames, max_step=np.inf, body_sd=1.5,
+                     body_frames=100, fit_rms=1.5) -> list:
+    """Step 11 (module docstring): while there are more markers than ``n_min``, two
+    markers that never share a frame are joined where the joint spheres decide: in the
+    frame of a body (``_bodies``: >= 3 tracks moving as one, >= ``body_frames`` frames) the
+    marker with more points there keeps a sphere about its joint (Kasa fit, rms <=
+    ``fit_rms`` x s0: a neighbour across one joint) and the other's points (>=
+    ``SPHERE_POINTS``) lie on it within ``SPHERE_FIT_Z`` x that rms, on no body off it,
+    while every other marker either of the two could join (no common frame, paced) has
+    their points off its sphere by >= ``SPHERE_MISFIT_Z`` x its rms on some body. The
+    best-fitting join first, none that crosses a gap faster than ``max_step`` per frame."""
+    vis = ~np.isnan(X[..., 0])
+    groups = [list(g) for g in groups]
+    span = _spans(vis, groups)
+    while len(groups) > n_min:
+        P = _tracks(X, groups)
+        S, s0 = _pair_sd(P, min_frames)
+        if not s0 > 0:
+            return groups
+        common, _, frames = _one_body_frames(P, S, s0, body_sd, body_frames)
+        M = len(groups)
+        free = [[b for b in range(M) if b != a and not common[a, b]
+                 and _paced(X, span, groups[a] + groups[b], max_step)] for a in range(M)]
+        if not any(free) or not frames:
+            return groups
+        spheres = {}
+        points = _points_in(frames, P)         # (body, track) -> its points in the body's frame
+
+        def judge(a, b) -> tuple:
+            """(best z where the fewer points lie on the other's sphere, worst z): z the
+            rms of their radius residual in units of the sphere's rms; NaN unjudged."""
+            zs = []
+            for body in frames:
+                if a in body or b in body:
+                    continue
+                ya, yb = points(body, a), points(body, b)
+                if len(ya) > len(yb):
+                    ya, yb = yb, ya
+                if len(yb) < 50 or len(ya) < rules.SPHERE_POINTS:
+                    continue
+                key = (body, b if len(points(body, b)) >= len(points(body, a)) else a)
+                if key not in spheres:
+                    spheres[key] = _sphere_fit(yb)
+                c, r, rms = spheres[key]
+                if not rms <= fit_rms * s0:
+                    continue                 # not a neighbour across one joint
+                res = np.linalg.norm(ya - c, axis=1) - r
+                zs.append(float(np.sqrt(np.mean(res ** 2))) / max(rms, 1e-12))
+            return (min(zs), max(zs)) if zs else (np.nan, np.nan)
+
+        verdict = {}
+        for a in range(M):
+            for b in free[a]:
+                if (b, a) not in verdict:
+                    verdict[a, b] = verdict[b, a] = judge(a, b)
+        best = None
+        for a in range(M):
+            for b in free[a]:
+                if b < a:
+                    continue
+                lo, hi = verdict[a, b]
+                if not (lo <= rules.SPHERE_FIT_Z and hi < rules.SPHERE_MISFIT_Z):
+                    continue
+                rivals = [(a, c) for c in free[a] if c != b] + [(b, c) for c in free[b]
+                                                                if c != a]
+                if all(verdict[r][1] >= rules.SPHERE_MISFIT_Z for r in rivals) and (
+                        best is None or lo < best[0]):
+                    best = (lo, a, b)
+        if best is None:
+            return groups
+        _, a, b = best
+        groups[a] = groups[a] + groups[b]
+        del groups[b]
+    return groups
+
+
+def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_rms=1.5,
+                      min_misfit=2.0, max_rounds=3, direction_margin=rules.DIRECTION_MARGIN,
+                      max_step=np.inf, rigid=3.0, jump_margin=10.8) -> tuple[list, bool]:
+    """Step 8 (module docstring): exchanges between two markers moving as one body judged
+    by the sphere each keeps about its joint in the frame of a neighbouring body, then by
+    how their direction stays within a joint's range in that frame
+    (``direction_margin``). None that step 4's jump test would undo (``STEP8_JUMPS``:
+    raising ``_jumps`` on the tracks rigid to every fragment of both markers by
+    ``jump_margin`` x s0 squared). Returns the groups and whether any changed."""
+    vis = ~np.isnan(X[..., 0])
+    groups = [list(g) for g in groups]
+    P = _tracks(X, groups)
+    S, s0 = _pair_sd(P, min_frames)
+    if not s0 > 0:
+        return groups, False
+    span = _spans(vis, groups)
+    continuity = _continuity_cost(X, vis)
+    changed = False
+    for _ in range(max_rounds):
+        common, one, frames = _one_body_frames(P, S, s0, body_sd, body_frames)
+        points = _points_in(frames, X)    # (body, fragment) -> its points in the body's frame
+        virtual = points_v = None   # the same with two tracks and a borrowed joint, as needed
+
+        best = turn = cont = None
+        sd_of = _fragment_sd(X, vis, P, min_frames) if rules.STEP8_JUMPS else None
+        for a, b in zip(*np.nonzero(np.triu(one, 1))):
+            ga, gb = groups[a], groups[b]
+            if len(ga) + len(gb) < 3:
+                continue
+            undone = set()             # alternatives step 4's jump test would undo
+            if rules.STEP8_JUMPS:
+                alts = _cross_alternatives(span, ga, gb)
+                js = _rigid_to_all(sd_of, ga + gb, rigid * s0)
+                js[[a, b]] = False
+                js = np.flatnonzero(js)
+                if alts and js.size:
+                    now_j, alt_j = _jumps(X, vis, ga, gb, alts, P[:, js],
+                                          jump_margin * s0 ** 2)
+                    undone = {frozenset((frozenset(na), frozenset(nb)))
+                              for (na, nb), c in zip(alts, alt_j)
+                              if c >= now_j + jump_margin * s0 ** 2}
+            done = set()
+            kept = {}                     # body -> the current assignment's direction spread
+            kept_ends = P[:, [a, b]]        # the current tracks (kept current by _exchange)
+            smooth_now = None               # the current assignment's continuity cost
+            for na, nb in _cross_alternatives(span, ga, gb):
+                key = frozenset((frozenset(na), frozenset(nb)))
+                if key in done or key in undone or not (_paced(X, span, na, max_step)
+                                       and _paced(X, span, nb, max_step)):
+                    continue
+                done.add(key)
+                moved = (set(ga) - set(na)) | (set(gb) - set(nb))
+                rest = set(ga + gb) - moved
+                if (sum(span[f][1] - span[f][0] for f in moved)
+                        > sum(span[f][1] - span[f][0] for f in rest)):
+                    moved = rest           # the smaller side is the exchanged piece
+                gain, veto = 0.0, False
+                spread = []               # (kept, exchanged) direction spread per body
+                ends = _tracks(X, [na, nb])
+                for body in frames:
+                    if a in body or b in body:
+                        continue
+                    pts = {f: points(body, f) for f in ga + gb}
+                    v = _sphere_verdict(pts, ga, gb, na, nb, moved)
+                    gate = fit_rms
+                    if v is None and rules.VIRTUAL_FRAMES:
+                        # too few points with the body seen in full: with two of its
+                        # tracks and its joint to a neighbour as the third point
+                        if virtual is None:
+                            virtual = _virtual_frames(P, frames, s0)
+                            points_v = _points_in(virtual, X)
+                        if body in virtual:
+                            v = _sphere_verdict({f: points_v(body, f) for f in ga + gb},
+                                                ga, gb, na, nb, moved)
+                            gate = rules.VIRTUAL_FIT_RMS
+                    if body not in kept:
+                        kept[body] = _direction_spread(kept_ends, frames[body])
+                    if not rules.DIRECTION_SEES_MOVED or (sum(len(pts[f]) for f in moved)
+                                                    >= rules.DIRECTION_MOVED_FRAMES):
+                        spread.append((kept[body], _direction_spread(ends, frames[body])))
+                    if v is None:
+                        continue
+                    sk, sm, pk, pm, n = v
+                    var = min(sk, sm) / (n - 5)
+                    if not var <= (gate * s0) ** 2 * n / (n - 5):
+                        continue                 # not a neighbour across one joint
+                    kp, mv = np.sqrt(pk / var), np.sqrt(pm / var)
+                    if kp >= min_misfit and kp >= min_misfit * mv:
+                        gain = max(gain, (sk - sm) / var)
+                    if mv >= min_misfit and mv >= min_misfit * kp:
+                        veto = True
+                if gain > 0 and not veto and (best is None or gain > best[0]):
+                    best = (gain, a, b, na, nb)
+                spread = np.array([r for r in spread if np.isfinite(r).all()]).reshape(-1, 2)
+                if not veto and spread.size:
+                    # the body that holds their direction tightest (their neighbour)
+                    rk, rx = spread[np.argmax(spread.max(1))]
+                    if (rx - rk >= direction_margin
+                            and not (spread[:, 0] - spread[:, 1] >= direction_margin).any()
+                            and (turn is None or rx - rk > turn[0])):
+                        turn = (rx - rk, a, b, na, nb)
+                if rules.CONTINUITY_EXCHANGES and not veto and not (
+                        spread.size and (spread[:, 0] - spread[:, 1] >= direction_margin).any()
+                        and not (rules.CONTESTED_DIRECTIONS and (
+                            spread[:, 1] - spread[:, 0] >= direction_margin).any())):
+                    if smooth_now is None:
+                        smooth_now = continuity(ga) + continuity(gb)
+                    smooth = smooth_now - continuity(na) - continuity(nb)
+                    if (smooth >= rules.CONTINUITY_EXCHANGE_MARGIN
+                            and (cont is None or smooth > cont[0])):
+                        cont = (smooth, a, b, na, nb)
+        if best is None:
+            best = turn
+        if best is None:
+            best = cont
+        if best is None:
+            break
+        _exchange(X, groups, P, S, *best[1:], min_frames)
+        changed = True
+    return groups, changed
