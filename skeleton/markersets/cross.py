@@ -106,6 +106,27 @@ from .tracks import (
 )
 
 
+def _clear_voter_moves(cands, margin) -> set:
+    """Indices of the candidate exchanges ``cands`` ((na, nb, gain, judged) of one pair of
+    markers) that move a voter onto a marker with none (not ``judged`` by the voter
+    exception of ``KEPT_TRACK_VOTES``) and gain at least ``margin`` more than every
+    candidate splitting the pair's fragments another way (``CLEAR_VOTER_MOVES``). Figure
+    10199 (held out at stop 54): markers 39 and 48 of two segments exchanged their runs
+    around frames 206-250; the one holding the two voters (fragments of 191 and 150 frames)
+    could only give one away, and the right exchange, gaining 14.33, was never judged.
+    In figure 313, for which the exception was made, the wrong move gained 4.64 and a right
+    one 4.59: not clear, so neither is made."""
+    out = set()
+    for i, (na, nb, gain, judged) in enumerate(cands):
+        if judged:
+            continue
+        key = frozenset((frozenset(na), frozenset(nb)))
+        others = [g for ma, mb, g, _ in cands if frozenset((frozenset(ma), frozenset(mb))) != key]
+        if gain >= margin + max(others + [0.0]):
+            out.add(i)
+    return out
+
+
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
                   max_rounds=10, jump_margin=10.8, one_body=1.5, turn_margin=np.pi / 3,
                   body_veto=True, max_step=np.inf):
@@ -161,17 +182,18 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                 sd[~keep] = np.nan
             return sum(cost(sd[part[f]]) for f in g if f in part)
 
-        def checked(g, old, excl):
+        def checked(g, old, excl, voters=False):
             """every fragment moved into g shares >= min_frames frames with a partner of
             one of the voters g kept: nothing is put where no partner can judge it. Where
             g kept no voter (every fragment it kept is shorter than voter_frames) and no
             voter moves in, the partners of the track the kept fragments make together
-            judge (``KEPT_TRACK_VOTES``; module docstring, step 4b)"""
+            judge (``KEPT_TRACK_VOTES``; module docstring, step 4b); a voter moving in
+            there is judged so too with ``voters`` (``CLEAR_VOTER_MOVES``)"""
             kept = [f for f in g if f in old]
             q = np.setdiff1d(np.concatenate([part[f] for f in kept if f in part]
                                             + [[]]), excl).astype(int)
             if (rules.KEPT_TRACK_VOTES and kept and not any(f in part for f in kept)
-                    and (rules.KEPT_TRACK_JUDGES_VOTERS
+                    and (rules.KEPT_TRACK_JUDGES_VOTERS or voters
                          or not any(f in part for f in g if f not in old))):
                 t = _tracks(X, [kept])[:, 0]
                 seen = ~np.isnan(t[:, 0])
@@ -293,13 +315,22 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                         keep[q[sdq <= rigid * s0]] = True
                 now = score(groups[a], P[:, a], q, keep) + score(groups[b], P[:, b], q, keep)
                 jumps, turns = None, False
+                cands = []              # (na, nb, gain, judged without moving a voter in)
                 for na, nb in alts:
-                    if not (checked(na, groups[a], ex) and checked(nb, groups[b], ex)):
+                    judged = checked(na, groups[a], ex) and checked(nb, groups[b], ex)
+                    if not judged and not (rules.CLEAR_VOTER_MOVES
+                                           and checked(na, groups[a], ex, voters=True)
+                                           and checked(nb, groups[b], ex, voters=True)):
                         continue
                     if not (_paced(X, span, na, max_step) and _paced(X, span, nb, max_step)):
                         continue
                     ta, tb = _tracks(X, [na, nb]).transpose(1, 0, 2)
                     gain = now - score(na, ta, q, keep) - score(nb, tb, q, keep)
+                    cands.append((na, nb, gain, judged))
+                clear = _clear_voter_moves(cands, margin) if rules.CLEAR_VOTER_MOVES else set()
+                for i, (na, nb, gain, judged) in enumerate(cands):
+                    if not (judged or i in clear):
+                        continue
                     if gain >= margin and (best is None or gain > best[0]):
                         # never an exchange that step 4's jump test would undo
                         if jumps is None:

@@ -33,6 +33,8 @@ TURN_FALLBACK = True   # step 4: a pair moving as one body whose partners decide
 
 KEPT_TRACK_VOTES = True    # step 4b: a marker without voters is judged by its kept track
 KEPT_TRACK_JUDGES_VOTERS = False   # ... also where the piece moved in is a voter itself
+CLEAR_VOTER_MOVES = True   # ... or where that move gains the margin over every other split
+#                            of the pair's fragments (figure 10199; figure 313's was not clear)
 
 MISFITS_ARE_BAD = True   # step 4b: a marker holding a misfit piece (step 4c's) is examined
 LESS_OFF_BODY = True     # step 4b: nor a move off one body onto one it is further off
@@ -73,6 +75,10 @@ VIRTUAL_FIT_RMS = 2.0  # ... judging there within this x s0 rms (true neighbours
 CONTINUITY_EXCHANGES = True  # step 8: exchanges no sphere or direction finds, by continuity
 CONTESTED_DIRECTIONS = True  # ... a direction veto needs no body for the exchange (8759)
 STEP8_JUMPS = True  # step 8 makes no exchange that step 4's jump test would undo (4455)
+AGREEING_SPHERES = True  # step 8: last, an exchange that two or more bodies across one
+#                          joint prefer and none opposes, where no sphere decides (10034)
+AGREEING_SPHERES_GAIN = 10.0   # ... each of two by at least this drop in the residual sum of
+#                                squares / its variance (wrong ones, 57 figures: never two > 0)
 CONTINUITY_MARGIN = 4.0      # steps 7b and 10: the most a join may cost in continuity
 CONTINUITY_EXCHANGE_MARGIN = 2.0   # step 8: the least gain in the continuity cost (1304)
 CONTINUITY_MM_PER_FRAME = (0.6, 0.009)   # a junction's typical miss: a x gap + b x gap^2 (mm)

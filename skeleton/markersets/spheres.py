@@ -231,6 +231,21 @@ def _join_by_spheres(X, groups, n_min, min_frames, max_step=np.inf, body_sd=1.5,
     return groups
 
 
+def _spheres_agree(gains, min_gain=None) -> float | None:
+    """The second largest of ``gains`` (per body across one joint: the drop in the
+    residual sum of squares, over its variance, that an exchange makes in the body's
+    common sphere fit) where two or more are at least ``min_gain``
+    (``AGREEING_SPHERES_GAIN``) and none is negative; else None. No single body's verdict
+    needs to be decisive (step 8's ``min_misfit``): figure 10034 (held out at stop 54), a
+    19-frame end piece of a 2-marker segment's marker on its partner, 1.77 and 1.94 residual
+    sds off in the two bodies one joint away, which gain 139 and 112 from the exchange."""
+    min_gain = rules.AGREEING_SPHERES_GAIN if min_gain is None else min_gain
+    g = sorted(gains)
+    if len(g) < 2 or g[0] < 0 or g[-2] < min_gain:
+        return None
+    return float(g[-2])
+
+
 def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_rms=1.5,
                       min_misfit=2.0, max_rounds=3, direction_margin=rules.DIRECTION_MARGIN,
                       max_step=np.inf, rigid=3.0, jump_margin=10.8) -> tuple[list, bool]:
@@ -254,7 +269,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
         points = _points_in(frames, X)    # (body, fragment) -> its points in the body's frame
         virtual = points_v = None   # the same with two tracks and a borrowed joint, as needed
 
-        best = turn = cont = None
+        best = turn = cont = agreed = None
         sd_of = _fragment_sd(X, vis, P, min_frames) if rules.STEP8_JUMPS else None
         for a, b in zip(*np.nonzero(np.triu(one, 1))):
             ga, gb = groups[a], groups[b]
@@ -288,6 +303,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                         > sum(span[f][1] - span[f][0] for f in rest)):
                     moved = rest           # the smaller side is the exchanged piece
                 gain, veto = 0.0, False
+                gains = []                # per body across one joint: the drop it measures
                 spread = []               # (kept, exchanged) direction spread per body
                 ends = _tracks(X, [na, nb])
                 for body in frames:
@@ -318,12 +334,17 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                     if not var <= (gate * s0) ** 2 * n / (n - 5):
                         continue                 # not a neighbour across one joint
                     kp, mv = np.sqrt(pk / var), np.sqrt(pm / var)
+                    gains.append((sk - sm) / var)
                     if kp >= min_misfit and kp >= min_misfit * mv:
                         gain = max(gain, (sk - sm) / var)
                     if mv >= min_misfit and mv >= min_misfit * kp:
                         veto = True
                 if gain > 0 and not veto and (best is None or gain > best[0]):
                     best = (gain, a, b, na, nb)
+                if rules.AGREEING_SPHERES and not veto:
+                    agree = _spheres_agree(gains)
+                    if agree is not None and (agreed is None or agree > agreed[0]):
+                        agreed = (agree, a, b, na, nb)
                 spread = np.array([r for r in spread if np.isfinite(r).all()]).reshape(-1, 2)
                 if not veto and spread.size:
                     # the body that holds their direction tightest (their neighbour)
@@ -346,6 +367,8 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
             best = turn
         if best is None:
             best = cont
+        if best is None:
+            best = agreed
         if best is None:
             break
         _exchange(X, groups, P, S, *best[1:], min_frames)

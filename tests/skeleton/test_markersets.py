@@ -756,6 +756,57 @@ def test_an_off_body_piece_goes_to_the_one_free_marker_whose_body_holds_it(monke
     assert fig.marker_segment[11] != fig.marker_segment[25]
 
 
+def test_an_exchange_two_bodies_prefer_and_none_opposes_is_made(monkeypatch):
+    """Held-out figure 10034 (first run at stop 54): the linkage put marker 13's last 19
+    frames (381-399) on marker 12, the other marker of its 2-marker segment, hidden from
+    356 (marker 13 from 344). Two bodies one joint away (segment 5, its child, and segment
+    1, across the 2-marker root) fit their common sphere within 1.31 and 1.18 x s0, and
+    in each the exchange lowers the residual sum of squares by 139 and 112 times its
+    variance, with no body against it; but the piece sits only 1.77 and 1.94 residual sds
+    off as merged, under step 8's decisive 2, and the continuity gain is 1.28, under its
+    margin of 2. Two bodies agreeing, none opposing, now decide (``AGREEING_SPHERES``); on
+    57 figures merged right none of 756 wrong alternatives had two bodies with a gain
+    above 0."""
+    fig, _, ids = _right_then_off(monkeypatch, 10034, "AGREEING_SPHERES", False)
+    assert [12, 13] in ids and [13] in ids
+    assert fig.marker_segment[12] == fig.marker_segment[13]
+
+
+def test_a_voter_moves_onto_a_marker_without_voters_where_the_move_is_clear(monkeypatch):
+    """Held-out figure 10199 (first run at stop 54): the linkage exchanged the runs of
+    markers 39 and 48 (segments 13 and 15) around frames 206-250. One id holds both voters
+    (marker 48's first 191 frames, marker 39's last 150), the other four short fragments,
+    so the right exchange moves a voter onto a marker without one, which step 4b's voter
+    exception (figure 313) never judged. It gains 14.33, the margin more than any other
+    split of the two markers' fragments, and is now made (``CLEAR_VOTER_MOVES``)."""
+    fig, _, ids = _right_then_off(monkeypatch, 10199, "CLEAR_VOTER_MOVES", False)
+    assert [39, 48] in ids
+    assert fig.marker_segment[39] != fig.marker_segment[48]
+
+
+def test_a_voter_move_is_clear_only_by_the_margin_over_every_other_split():
+    """``_clear_voter_moves``: figure 313's wrong move (4.64) beside a right one (4.59) is
+    not clear; the same split in either order is not another split."""
+    from skeleton.markersets.cross import _clear_voter_moves
+    assert _clear_voter_moves([([1, 2], [3], 4.64, False), ([1], [2, 3], 4.59, False)],
+                              1.0) == set()
+    assert _clear_voter_moves([([1, 2], [3], 14.33, False), ([3], [1, 2], 14.33, False),
+                               ([1], [2, 3], 2.0, True)], 1.0) == {0, 1}
+    assert _clear_voter_moves([([1, 2], [3], 14.33, True)], 1.0) == set()
+    assert _clear_voter_moves([([1, 2], [3], 0.5, False)], 1.0) == set()
+
+
+def test_agreeing_spheres_need_two_bodies_and_none_against():
+    """``_spheres_agree``: the second largest gain where two or more bodies gain at least
+    the margin and none loses; one decisive body, or one against, gives nothing."""
+    from skeleton.markersets.spheres import _spheres_agree
+    assert _spheres_agree([139.2, 112.1]) == pytest.approx(112.1)
+    assert _spheres_agree([139.2, 112.1, 3.0]) == pytest.approx(112.1)
+    assert _spheres_agree([241.0]) is None
+    assert _spheres_agree([139.2, 112.1, -0.5]) is None
+    assert _spheres_agree([139.2, 9.0], min_gain=10.0) is None
+
+
 def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     """Held-out figure 1833 (first run at stop 34): the linkage merges marker 17 right;
     the swap repair (steps 4-4c) moves its first fragment out and a piece of marker 15
