@@ -29,7 +29,9 @@
    bench_markersets.py builds them (stop 38): 1829 -> 1830/1840 (fixed 569, none lost;
    without the exception 1829, 313 lost); held out, first run 2600-2839: 238/240 with and
    without the rule, the same two failures (2710, 2738); real recordings' merged groups
-   identical with and without), nor one
+   identical with and without; since stop 56 a voter moving in is judged so too where
+   that exchange gains the margin more than every other split of the pair's fragments,
+   ``CLEAR_VOTER_MOVES``, ``_clear_voter_moves``, figure 10199), nor one
    that raises step 4's jump cost of the two markers by ``jump_margin`` times the measured
    sd squared (a voter's partners may be rigid over its frames only: in figure 372 they
    put back a piece that step 4's jumps had moved), nor one that makes the direction

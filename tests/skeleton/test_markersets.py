@@ -650,10 +650,14 @@ def test_two_markers_exchanged_are_told_apart_by_their_direction_in_a_neighbour(
     # without the direction rule the two markers stay exchanged (the failure guarded
     # against; since stop 53 step 4b's partners rigid to an alternative, RIGID_SOMEWHERE,
     # keep 1646's pair from being exchanged, and with step 4b's jump veto per marker,
-    # JUMPS_PER_MARKER, the pair is not left exchanged either: both are off here)
+    # JUMPS_PER_MARKER, the pair is not left exchanged either; since stop 56 two bodies
+    # agreeing on the spheres, AGREEING_SPHERES, exchange 1504's pair back, and step 4b's
+    # clear voter moves, CLEAR_VOTER_MOVES, 1646's: all four are off here)
     import skeleton.markersets as ms
     monkeypatch.setattr(ms.rules, "RIGID_SOMEWHERE", False)
     monkeypatch.setattr(ms.rules, "JUMPS_PER_MARKER", False)
+    monkeypatch.setattr(ms.rules, "AGREEING_SPHERES", False)
+    monkeypatch.setattr(ms.rules, "CLEAR_VOTER_MOVES", False)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", merge_kw=NO_DEFER,
                        before_stop39=True, direction_margin=np.inf) == [pair, pair]
 
@@ -765,8 +769,8 @@ def test_an_exchange_two_bodies_prefer_and_none_opposes_is_made(monkeypatch):
     variance, with no body against it; but the piece sits only 1.77 and 1.94 residual sds
     off as merged, under step 8's decisive 2, and the continuity gain is 1.28, under its
     margin of 2. Two bodies agreeing, none opposing, now decide (``AGREEING_SPHERES``); on
-    57 figures merged right none of 756 wrong alternatives had two bodies with a gain
-    above 0."""
+    the final groups of figures 0-184 merged right none of 2159 wrong alternatives (889
+    judged by two or more bodies) had two bodies with a gain above 0."""
     fig, _, ids = _right_then_off(monkeypatch, 10034, "AGREEING_SPHERES", False)
     assert [12, 13] in ids and [13] in ids
     assert fig.marker_segment[12] == fig.marker_segment[13]
