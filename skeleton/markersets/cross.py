@@ -14,7 +14,10 @@
    bound, the exchange then gaining 2.98), and every other marker, each
    overlap-free exchange of a run of their fragments is scored (the pair's own tracks left
    out of the partners, so each alternative sums the same terms) and the best is made when
-   it lowers the sum by ``swap_margin`` (1), one exchange per round. An exchange may not put
+   it lowers the sum by ``swap_margin`` (1), one exchange per round (or by
+   ``BODY_CONFIRMS_MARGIN`` (0.5) where every piece it moves leaves a body it does not move
+   as one with for one it does, ``BODY_CONFIRMS``, ``_onto_bodies``, stop 57: figure 3464,
+   below). An exchange may not put
    a fragment where no partner of the receiving track's voters is seen with it for
    ``min_frames`` frames (else a piece could be dumped where nothing judges it; where
    every fragment the receiving marker keeps is shorter than a voter's 100 frames, the
@@ -73,6 +76,21 @@
    42.9 mm^2 against 14.4, over the 21 mm^2 margin. Per marker, the two segment partners
    count for their own marker: 2.0e6 against 47 mm^2);
 
+A body confirms an exchange that gains less than the margin (``BODY_CONFIRMS``, stop 57):
+from a gain of ``BODY_CONFIRMS_MARGIN`` (0.5) it is judged like one above it where every
+fragment it moves has, among the tracks moving as one body with the fragments its old
+marker keeps (sd <= 1.5 x s0 over >= 100 frames, ``_body_sds``), one it is further than
+1.5 x s0 from, and is within 1.5 x s0 of every such track of its new marker's kept
+fragments. Figure 3464 (right until stop 53's ``RIGID_SOMEWHERE`` dropped a partner): the
+linkage gave marker 29's last 49 frames (segment 10) to marker 55 of its child segment 18,
+and marker 55's last 17 to marker 29, while the joint between barely moved; the right
+exchange gained 0.92. The two pieces sat up to 2.0 and 1.93 x s0 off their markers'
+one-body tracks and within 1.18 and 1.15 x s0 of every one of the other marker's.
+``/tmp`` driver on all 8,370 figures of the step-4 cache (``_repairs_from`` on the cached
+groups, re-run with the rule off wherever ``_onto_bodies`` confirmed an exchange): 8370/8370
+right; it confirmed one on 1620, 3224, 3464, 4668, 4855, 5430 and 10847 and changed the
+groups of 3464 only (the other six merged the same groups with it off).
+
 Step 4b (stop 16), ``bench_markersets.py`` (the failures of stop 15's code: 1-119: 28, 30,
 85, 93, 119; 120-199: 131, 135, 157, 166, 186, 188, 195; 200-279: 221, 225, 227, 242,
 256, 261 - 262 of 280 merged). A first form (each track against its longest fragment's
@@ -127,6 +145,25 @@ def _clear_voter_moves(cands, margin) -> set:
         if gain >= margin + max(others + [0.0]):
             out.add(i)
     return out
+
+
+def _onto_bodies(vis, P, sd_of, ga, na, gb, nb, excl, body_sd, body_frames) -> bool:
+    """Every fragment an exchange moves (from marker a's fragments ``ga`` into ``nb``, from
+    ``gb`` into ``na``) leaves a body it does not move as one with for one it does: some
+    track moving as one body with the fragments its old marker keeps (``_body_sds``) is
+    further than ``body_sd`` from it, and every one moving as one body with those its new
+    marker keeps is within ``body_sd`` (one at least, both sides) (``BODY_CONFIRMS``)."""
+    for g, new, h in ((ga, na, gb), (gb, nb, ga)):
+        kept = [f for f in new if f in g]
+        stay = [f for f in h if f not in new]
+        for f in new:
+            if f in g:
+                continue
+            _, home = _body_sds(vis, P, sd_of, f, stay, excl, body_sd, body_frames)
+            _, there = _body_sds(vis, P, sd_of, f, kept, excl, body_sd, body_frames)
+            if not (home.size and there.size and there.max() <= body_sd < home.max()):
+                return False
+    return True
 
 
 def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100,
@@ -333,7 +370,13 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                 for i, (na, nb, gain, judged) in enumerate(cands):
                     if not (judged or i in clear):
                         continue
-                    if gain >= margin and (best is None or gain > best[0]):
+                    if gain < margin and not (
+                            rules.BODY_CONFIRMS and gain >= rules.BODY_CONFIRMS_MARGIN
+                            and (best is None or gain > best[0])
+                            and _onto_bodies(vis, P, sd_of, groups[a], na, groups[b], nb, ex,
+                                             one_body * s0, voter_frames)):
+                        continue
+                    if best is None or gain > best[0]:
                         # never an exchange that step 4's jump test would undo
                         if jumps is None:
                             js = strict(a, b)

@@ -788,6 +788,20 @@ def test_a_voter_moves_onto_a_marker_without_voters_where_the_move_is_clear(monk
     assert fig.marker_segment[39] != fig.marker_segment[48]
 
 
+def test_an_exchange_under_the_margin_is_made_where_the_bodies_confirm_it(monkeypatch):
+    """Figure 3464 (right until stop 53's ``RIGID_SOMEWHERE``): the linkage gave marker
+    29's last 49 frames (351-399, segment 10) to marker 55 of the child segment 18, and
+    marker 55's last 17 frames (383-399) to marker 29; the joint between barely moves
+    there. The right exchange gains 0.92 in step 4b's voting sum, under the margin of 1.
+    Each moved piece leaves a body it does not move as one with (one-body tracks of the
+    fragments its marker keeps at up to 2.0 and 1.93 x s0, above 1.5) for one it does
+    (within 1.18 and 1.15 x s0), so the exchange is made (``BODY_CONFIRMS``, from a gain
+    of 0.5); without it the pieces stay exchanged."""
+    fig, _, ids = _right_then_off(monkeypatch, 3464, "BODY_CONFIRMS", False)
+    assert [29, 55] in ids
+    assert fig.marker_segment[29] != fig.marker_segment[55]
+
+
 def test_a_voter_move_is_clear_only_by_the_margin_over_every_other_split():
     """``_clear_voter_moves``: figure 313's wrong move (4.64) beside a right one (4.59) is
     not clear; the same split in either order is not another split."""
