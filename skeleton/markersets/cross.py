@@ -15,7 +15,7 @@
    overlap-free exchange of a run of their fragments is scored (the pair's own tracks left
    out of the partners, so each alternative sums the same terms) and the best is made when
    it lowers the sum by ``swap_margin`` (1), one exchange per round (or by
-   ``BODY_CONFIRMS_MARGIN`` (0.5) where every piece it moves leaves a body it does not move
+   ``BODY_CONFIRMS_FRACTION`` (0.5) of it where every piece it moves leaves a body it does not move
    as one with for one it does, ``BODY_CONFIRMS``, ``_onto_bodies``, stop 57: figure 3464,
    below). An exchange may not put
    a fragment where no partner of the receiving track's voters is seen with it for
@@ -77,7 +77,7 @@
    count for their own marker: 2.0e6 against 47 mm^2);
 
 A body confirms an exchange that gains less than the margin (``BODY_CONFIRMS``, stop 57):
-from a gain of ``BODY_CONFIRMS_MARGIN`` (0.5) it is judged like one above it where every
+from a gain of ``BODY_CONFIRMS_FRACTION`` (0.5) x the margin it is judged like one above it where every
 fragment it moves has, among the tracks moving as one body with the fragments its old
 marker keeps (sd <= 1.5 x s0 over >= 100 frames, ``_body_sds``), one it is further than
 1.5 x s0 from, and is within 1.5 x s0 of every such track of its new marker's kept
@@ -371,7 +371,7 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                     if not (judged or i in clear):
                         continue
                     if gain < margin and not (
-                            rules.BODY_CONFIRMS and gain >= rules.BODY_CONFIRMS_MARGIN
+                            rules.BODY_CONFIRMS and gain >= rules.BODY_CONFIRMS_FRACTION * margin
                             and (best is None or gain > best[0])
                             and _onto_bodies(vis, P, sd_of, groups[a], na, groups[b], nb, ex,
                                              one_body * s0, voter_frames)):

@@ -41,8 +41,8 @@ LESS_OFF_BODY = True     # step 4b: nor a move off one body onto one it is furth
 RIGID_SOMEWHERE = True   # step 4b: a voter's partner counts where rigid to some alternative (7429)
 JUMPS_PER_MARKER = True  # step 4b's jump veto: a partner fits per marker, not per pair (9533)
 BODY_CONFIRMS = True     # step 4b: an exchange gaining less than the margin, by at least
-BODY_CONFIRMS_MARGIN = 0.5   # this, where every moved piece leaves a body it is off for one
-#                              it moves as one with (figure 3464)
+BODY_CONFIRMS_FRACTION = 0.5   # this x the margin, where every moved piece leaves a body it
+#                                is off for one it moves as one with (figure 3464)
 NO_NEW_MISFITS = True    # step 4b: nor one that makes a fitting piece a misfit (figure 4430)
 
 UNJUDGED_MOVES = True   # step 4c: a piece no judge sees on its own marker moves where it fits

@@ -754,8 +754,10 @@ def test_an_off_body_piece_goes_to_the_one_free_marker_whose_body_holds_it(monke
     finds it 191 x s0 squared off, so no marker fits it; its three one-body tracks there
     (sd 0.7-1.06 x s0) find it at 0.01-2.3, and the other free marker's are 11-13 x s0 off
     it. The one free marker whose one-body tracks all hold it takes it
-    (``BODY_FITS_FREE``); without it the piece stays on marker 25."""
-    fig, _, ids = _right_then_off(monkeypatch, 10847, "BODY_FITS_FREE", False)
+    (``BODY_FITS_FREE``); without it the piece stays on marker 25. (Since stop 57 step 4b's
+    ``BODY_CONFIRMS`` also puts it right; it is shown with that rule off.)"""
+    fig, _, ids = _right_then_off(monkeypatch, 10847, "BODY_FITS_FREE", False,
+                                  BODY_CONFIRMS=False)
     assert [11, 25] in ids and [11] in ids
     assert fig.marker_segment[11] != fig.marker_segment[25]
 
@@ -795,8 +797,8 @@ def test_an_exchange_under_the_margin_is_made_where_the_bodies_confirm_it(monkey
     there. The right exchange gains 0.92 in step 4b's voting sum, under the margin of 1.
     Each moved piece leaves a body it does not move as one with (one-body tracks of the
     fragments its marker keeps at up to 2.0 and 1.93 x s0, above 1.5) for one it does
-    (within 1.18 and 1.15 x s0), so the exchange is made (``BODY_CONFIRMS``, from a gain
-    of 0.5); without it the pieces stay exchanged."""
+    (within 1.18 and 1.15 x s0), so the exchange is made (``BODY_CONFIRMS``, from half
+    the margin); without it the pieces stay exchanged."""
     fig, _, ids = _right_then_off(monkeypatch, 3464, "BODY_CONFIRMS", False)
     assert [29, 55] in ids
     assert fig.marker_segment[29] != fig.marker_segment[55]
@@ -924,9 +926,10 @@ def test_a_piece_no_judge_sees_moves_to_the_marker_a_partner_places_it_on(monkey
     on which tracks rigid to it and to that marker's fragments, at the same distance from
     both, see it for >= 20 frames in all (``UNJUDGED_MOVES``); in 3019 a marker of the next
     segment, rigid over those 18 frames, also judges there and sits 3.55 x the bound off,
-    so a verdict of every judge would keep the piece out."""
+    so a verdict of every judge would keep the piece out. (Since stop 57 step 4b's
+    ``BODY_CONFIRMS`` also puts 403 right; it is shown with that rule off.)"""
     _, _, ids = _right_then_off(monkeypatch, k, "UNJUDGED_MOVES", False,
-                                ORDER_SD_WEIGHT=OLD_ORDER_SD_WEIGHT)
+                                ORDER_SD_WEIGHT=OLD_ORDER_SD_WEIGHT, BODY_CONFIRMS=False)
     assert sorted([piece_of, held_by]) in ids
 
 
@@ -998,8 +1001,11 @@ def test_a_misfit_with_no_free_marker_is_exchanged(monkeypatch):
     segment partners and fits marker 19, but marker 19 is seen over those frames, so step
     4c could not move it, and step 4b's sd gain for the exchange was 0.63 (margin 1).
     Step 4c now makes the one exchange after which every moved piece fits the marker it
-    joins (``MISFIT_EXCHANGES``)."""
-    _, _, ids = _right_then_off(monkeypatch, 3224, "MISFIT_EXCHANGES", False)
+    joins (``MISFIT_EXCHANGES``). (Since stop 57 step 4b's ``BODY_CONFIRMS``, bodies
+    confirming an exchange under its margin, also puts it right; it is shown with that rule
+    off.)"""
+    _, _, ids = _right_then_off(monkeypatch, 3224, "MISFIT_EXCHANGES", False,
+                                BODY_CONFIRMS=False)
     assert [5, 19] in ids
 
 
