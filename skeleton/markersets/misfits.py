@@ -80,7 +80,13 @@
    first pieces of marker 13 (a 3-marker segment) and marker 46 (a 2-marker sibling
    segment); marker 46's piece sat 216.9 x s0 squared off marker 13's partner 12, marker
    13's fitted marker 13 on both its partners, but marker 46's partner is not seen with
-   marker 46's piece);
+   marker 46's piece). A piece off its marker's body that every judge there fits, and that
+   a one-body track there holds too (rigid to it at its distance from the marker's other
+   fragments, ``_body_holds``), is not off its body: the one-body tracks that find it at
+   another distance are across a joint that moved while the marker was hidden
+   (``SPLIT_BODY_STAYS``, stop 57; held-out figure 11934: marker 4's first 13 frames, at
+   0.0 and 0.32 x the bound from its segment partners and 2.86 and 2.67 x off two markers
+   of the child segment, moved to a marker two joints away; screen: docs/figures-skeleton.md, stop 57).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -90,7 +96,9 @@ import numpy as np
 
 from . import rules
 from .continuity import _continuity_cost
-from .judges import _body_sds, _fits_on, _misfit, _off_body, _placed, _tells, _unjudged_on
+from .judges import (
+    _body_sds, _fits, _fits_on, _jump_ss, _misfit, _off_body, _placed, _tells, _unjudged_on
+)
 from .tracks import _cross_alternatives, _fragment_sd, _paced, _spans, _tracks
 
 
@@ -132,6 +140,10 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                 at_home = set(judges[miss <= bound].tolist())
                 off = _off_body(X, vis, P, sd_of, f, kept, [a], rigid * s0, one_body * s0,
                                 bound, voter_frames)
+                if (off and rules.SPLIT_BODY_STAYS and _fits(miss, bound)
+                        and _body_holds(X, vis, P, sd_of, f, kept, [a], rigid * s0,
+                                        one_body * s0, bound, voter_frames)):
+                    off = False          # its body's tracks disagree (figure 11934)
                 unjudged = rules.UNJUDGED_MOVES and miss.size == 0 and not off
                 if not (miss.size and miss.min() > bound) and not off and not unjudged:
                     continue
@@ -204,6 +216,23 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
         else:
             groups[a], groups[b] = swap
     return groups
+
+
+def _body_holds(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, body_frames):
+    """Some track moving as one body with the fragments ``kept`` (``_body_sds``) holds
+    fragment ``f`` as theirs: rigid to it (sd <= ``rigid_sd``) at the distance it keeps from
+    them (``_jump_ss`` of kept + [f] within ``bound`` of kept's) (``SPLIT_BODY_STAYS``).
+    Where others find f off (``_off_body``) and every judge fits it (``_fits``), those
+    others are across a joint that was still while the marker's other fragments were seen:
+    figure 11934 (held out at stop 57), marker 4's first 13 frames, at 0.0 and 0.32 x the
+    bound from its segment partners (markers 2 and 3) and 2.86 and 2.67 x off markers 27
+    and 28 of the child segment, one body with marker 4 over >= 100 frames, moved to
+    marker 42 of a segment two joints away, where its one judge fitted it (0.08)."""
+    js, sd = _body_sds(vis, P, sd_of, f, kept, excl, body_sd, body_frames)
+    if js.size == 0:
+        return False
+    ss = _jump_ss(X, vis, kept + [f], P[:, js])
+    return bool(((sd <= rigid_sd) & (ss(kept + [f]) - ss(kept) <= bound)).any())
 
 
 def _one_body_fits(X, vis, P, sd_of, f, groups, free, excl, rigid_sd, body_sd, bound,

@@ -63,6 +63,8 @@ CONTINUITY_OFF_BODY = True   # ... also an off-body piece with several free mark
 #                              nothing finds it off (ONLY_FREE_MARKER's case; figure 2738)
 BODY_FITS_FREE = True    # step 4c: an off-body piece no marker takes goes to the one free
 #                          marker whose one-body tracks all hold it (figure 10847)
+SPLIT_BODY_STAYS = True  # step 4c: an off-body piece every judge at home fits stays where a
+#                          one-body track there holds it too (figure 11934)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
 #                          also find the piece on its own (figure 4083)
 

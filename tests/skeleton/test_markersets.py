@@ -804,6 +804,20 @@ def test_an_exchange_under_the_margin_is_made_where_the_bodies_confirm_it(monkey
     assert fig.marker_segment[29] != fig.marker_segment[55]
 
 
+def test_a_piece_its_judges_and_a_body_track_hold_stays_on_its_marker(monkeypatch):
+    """Held-out figure 11934 (first run at stop 57): the linkage merged marker 4 right, its
+    first 13 frames included. Its segment partners (markers 2 and 3) judge that piece at
+    0.0 and 0.32 x the jump bound, but markers 27 and 28 of the child segment, one body
+    with marker 4 over >= 100 frames, sit 2.86 and 2.67 x the bound further from it: the
+    joint between moved while marker 4 was hidden. Off its body so, step 4c moved it to
+    marker 42, two joints away, whose one judge fitted it. Where every judge at home fits
+    the piece and a one-body track there holds it too, it now stays
+    (``SPLIT_BODY_STAYS``); without it marker 42 takes it."""
+    fig, _, ids = _right_then_off(monkeypatch, 11934, "SPLIT_BODY_STAYS", False)
+    assert [4, 42] in ids
+    assert fig.marker_segment[4] != fig.marker_segment[42]
+
+
 def test_a_voter_move_is_clear_only_by_the_margin_over_every_other_split():
     """``_clear_voter_moves``: figure 313's wrong move (4.64) beside a right one (4.59) is
     not clear; the same split in either order is not another split."""
