@@ -849,9 +849,11 @@ def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     ``max_distance_m`` now runs again after step 8. (Since stop 35 the linkage's deferral
     of long gaps, step 3's ``defer_gap``, avoids the state; it is shown without it. Since
     stop 42 step 4c keeps the first fragment where it is, its one judge there finding it
-    on marker 17 too (``TELLING_JUDGES``); it is shown with that rule off.)"""
+    on marker 17 too (``TELLING_JUDGES``), and since stop 57 its judges and a one-body
+    track there holding it (``SPLIT_BODY_STAYS``); it is shown with both rules off.)"""
     import skeleton.markersets as ms
     monkeypatch.setattr(ms.rules, "TELLING_JUDGES", False)
+    monkeypatch.setattr(ms.rules, "SPLIT_BODY_STAYS", False)
     fig, mo, X, owner = _bench_figure(1833)
     after8 = []
     step8 = ms._sphere_exchanges
