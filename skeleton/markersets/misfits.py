@@ -86,7 +86,10 @@
    another distance are across a joint that moved while the marker was hidden
    (``SPLIT_BODY_STAYS``, stop 57; held-out figure 11934: marker 4's first 13 frames, at
    0.0 and 0.32 x the bound from its segment partners and 2.86 and 2.67 x off two markers
-   of the child segment, moved to a marker two joints away; screen: docs/figures-skeleton.md, stop 57).
+   of the child segment, moved to a marker two joints away). ``/tmp`` driver, one
+   ``_repairs_from`` per cached figure with the rule on (it withdraws an off-body flag on
+   most figures, so it was not re-run off): 4738/4738, every cached figure of 0-1737,
+   2146-3573, 3880-5136 and 11737-11999 and 52 others; not run on the other 4,383.
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
