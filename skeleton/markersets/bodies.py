@@ -127,6 +127,80 @@ def _virtual_frames(P, frames, s0, joint_rms=rules.VIRTUAL_JOINT_RMS,
     return out
 
 
+def _pair_frames(P, one, frames, s0, joint_rms=rules.VIRTUAL_JOINT_RMS,
+                 min_lever=rules.VIRTUAL_MIN_LEVER_M, min_frames=50) -> tuple[dict, dict]:
+    """Frames of two-track bodies (``PAIR_FRAMES``, step 8): each pair of tracks moving as
+    one body (``one``) that no body of ``frames`` (three or more tracks) holds, with its
+    joint to the body it fits best as the third point: in that body's frame the two tracks
+    keep spheres about one centre (``_common_sphere``, rms <= ``joint_rms`` x s0 over >=
+    ``min_frames`` frames), >= ``min_lever`` off the line through them. Returns ({(i, j):
+    (frames, R, t)} as ``_body_frame`` gives, over the frames both tracks and that body are
+    seen; {(i, j): the body lent}). Figure 12020 (held out at stop 60): a 2-marker leaf
+    segment under a 2-marker segment, whose parent has three markers."""
+    out, lent = {}, {}
+    held = {frozenset((x, y)) for B in frames for x in B for y in B if x != y}
+    for i, j in zip(*np.nonzero(np.triu(one, 1))):
+        i, j = int(i), int(j)
+        if frozenset((i, j)) in held:
+            continue
+        best = None
+        for A, (frA, RA, tA) in frames.items():
+            if i in A or j in A:
+                continue
+            ok = ~np.isnan(P[frA][:, [i, j], 0]).any(1)
+            if ok.sum() < min_frames:
+                continue
+            fr, R, t = frA[ok], RA[ok], tA[ok]
+            Y = [np.einsum("bij,bj->bi", R, P[fr, m]) + t for m in (i, j)]
+            u, res = _common_centre(Y)
+            rms = float(np.sqrt(np.mean(np.concatenate(res) ** 2)))
+            if rms <= joint_rms * s0 and (best is None or rms < best[0]):
+                best = (rms, A, fr, R, t, u)
+        if best is None:
+            continue
+        _, A, fr, R, t, u = best
+        c = np.einsum("bji,bj->bi", R, u - t)          # the joint in the world
+        src = np.stack([P[fr, i], P[fr, j], c], 1)
+        d = src[:, 1] - src[:, 0]
+        lever = np.linalg.norm(np.cross(d, src[:, 2] - src[:, 0]), axis=1) / np.linalg.norm(
+            d, axis=1)
+        if not np.median(lever) >= min_lever:
+            continue
+        Rk, tk = _kabsch_batch(src, np.broadcast_to(src[:1], src.shape))
+        out[i, j] = (fr, Rk, tk)
+        lent[i, j] = A
+    return out, lent
+
+
+def _partial_frames(P, frames) -> dict:
+    """Each body's frame (``_one_body_frames``' ``frames``) extended to the frames where
+    three or more of its tracks, not all, are seen (a body of four or more): Kabsch of
+    those onto their positions in the body's frame; (frames, R, t) as ``_body_frame``
+    gives, for the bodies that gain frames so (``SPHERE_OFF_BODY``)."""
+    out = {}
+    for B, (frB, RB, tB) in frames.items():
+        if len(B) < 4:
+            continue
+        ref = P[frB[0]][list(B)]
+        seen = ~np.isnan(P[:, list(B), 0])
+        extra = np.flatnonzero((seen.sum(1) >= 3) & ~seen.all(1))
+        if not extra.size:
+            continue
+        fr, R, t = [frB], [RB], [tB]
+        for key in {tuple(r) for r in seen[extra]}:
+            cols = np.flatnonzero(key)
+            rows = extra[(seen[extra] == key).all(1)]
+            src = P[rows][:, [B[c] for c in cols]]
+            Rk, tk = _kabsch_batch(src, np.broadcast_to(ref[cols], src.shape))
+            fr.append(rows)
+            R.append(Rk)
+            t.append(tk)
+        fr = np.concatenate(fr)
+        o = np.argsort(fr, kind="stable")
+        out[B] = (fr[o], np.concatenate(R)[o], np.concatenate(t)[o])
+    return out
+
+
 def _points_in(frames, Y):
     """A function (body, column) -> the points of column ``Y[:, column]`` seen in the frames
     of ``body`` (a key of ``frames``, as ``_one_body_frames`` gives), in the body's frame;
@@ -146,6 +220,11 @@ def _points_in(frames, Y):
 def _common_sphere(Ys) -> list:
     """Residuals |y - c| - r_i of each point set in ``Ys`` about one centre c with a radius
     per set (Kasa's algebraic fit, shared centre)."""
+    return _common_centre(Ys)[1]
+
+
+def _common_centre(Ys) -> tuple:
+    """(c, residuals) of ``_common_sphere``."""
     n = len(Ys)
     A = np.zeros((sum(len(y) for y in Ys), 3 + n))
     A[:, :3] = 2 * np.concatenate(Ys)
@@ -156,8 +235,8 @@ def _common_sphere(Ys) -> list:
     b = np.concatenate([(y ** 2).sum(1) for y in Ys])
     sol = np.linalg.lstsq(A, b, rcond=None)[0]
     c = sol[:3]
-    return [np.linalg.norm(y - c, axis=1) - np.sqrt(max(sol[3 + k] + c @ c, 0.0))
-            for k, y in enumerate(Ys)]
+    return c, [np.linalg.norm(y - c, axis=1) - np.sqrt(max(sol[3 + k] + c @ c, 0.0))
+               for k, y in enumerate(Ys)]
 
 
 def _sphere_verdict(pts, ga, gb, na, nb, moved):
@@ -179,6 +258,59 @@ def _sphere_verdict(pts, ga, gb, na, nb, moved):
     if nd < 5:
         return None
     return sk, sm, pk / nd, pm / nd, n
+
+
+def _sphere_pick(X, P, S, s0, f, a, candidates, body_sd=1.5, body_frames=100,
+                 fit_rms=1.5):
+    """The one marker of ``candidates`` (track indices of P (T, M, 3), pair sds S) whose
+    joint sphere fragment ``f`` of X (now on track ``a``) lies on, every other candidate's
+    being off (``SPHERE_OFF_BODY``, step 4c): in the frame of each body (``_one_body_frames``;
+    ``_partial_frames`` where it shows three or more of its tracks) holding neither ``a``
+    nor the candidate, where it sees f in >= ``SPHERE_POINTS`` frames
+    (else in its frame extended with a borrowed joint, ``_virtual_frames``, judging within
+    ``VIRTUAL_FIT_RMS``), the candidate's track keeps a sphere (Kasa fit of >= 50 points,
+    rms <= ``fit_rms`` x s0: a neighbour across one joint) and f's radius residuals have
+    an rms of z x the sphere's. The pick lies within ``SPHERE_FIT_Z`` on some body and
+    under ``SPHERE_MISFIT_Z`` on all; every other candidate >= ``SPHERE_MISFIT_Z`` on some
+    body. None otherwise. Step 11's test, applied to a piece and the markers it could go to.
+    Figure 12527 (held out at stop 60): marker 50's last 19 frames, 2-marker segment 16,
+    both markers hidden then, sat on marker 23 of another segment; markers 49 and 50 were
+    free with no track to judge the piece on either, their spheres about the joint with
+    4-marker segment 13 of radii 208 and 241 mm."""
+    _, _, full = _one_body_frames(P, S, s0, body_sd, body_frames)
+    frames = {**full, **_partial_frames(P, full)}
+    virtual = pts_xv = pts_pv = None
+    pts_x, pts_p = _points_in(frames, X), _points_in(frames, P)
+    z = {b: [] for b in candidates}
+    for body in frames:
+        if a in body:
+            continue
+        y, pp, gate = pts_x(body, f), pts_p, fit_rms
+        if len(y) < rules.SPHERE_POINTS and rules.VIRTUAL_FRAMES:
+            if virtual is None:
+                virtual = _virtual_frames(P, full, s0)
+                pts_xv, pts_pv = _points_in(virtual, X), _points_in(virtual, P)
+            if body in virtual:
+                y, pp, gate = pts_xv(body, f), pts_pv, rules.VIRTUAL_FIT_RMS
+        if len(y) < rules.SPHERE_POINTS:
+            continue
+        for b in candidates:
+            if b in body:
+                continue
+            yb = pp(body, b)
+            if len(yb) < 50:
+                continue
+            c, r, rms = _sphere_fit(yb)
+            if not rms <= gate * s0:
+                continue
+            res = np.linalg.norm(y - c, axis=1) - r
+            z[b].append(float(np.sqrt(np.mean(res ** 2))) / max(rms, 1e-12))
+    on = [b for b in candidates if z[b] and min(z[b]) <= rules.SPHERE_FIT_Z
+          and max(z[b]) < rules.SPHERE_MISFIT_Z]
+    if len(on) == 1 and all(z[b] and max(z[b]) >= rules.SPHERE_MISFIT_Z
+                            for b in candidates if b != on[0]):
+        return on[0]
+    return None
 
 
 def _direction_spread(ends, frame) -> float:

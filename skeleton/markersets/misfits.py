@@ -98,11 +98,14 @@ from __future__ import annotations
 import numpy as np
 
 from . import rules
+from .bodies import _sphere_pick
 from .continuity import _continuity_cost
 from .judges import (
     _body_sds, _fits, _fits_on, _jump_ss, _misfit, _off_body, _placed, _tells, _unjudged_on
 )
-from .tracks import _cross_alternatives, _fragment_sd, _paced, _spans, _tracks
+from .tracks import (
+    _cross_alternatives, _fragment_sd, _paced, _pair_sd, _spans, _tracks
+)
 
 
 def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_frames=100,
@@ -209,6 +212,16 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                         # marker or exchange: the one free marker whose one-body tracks
                         # all hold it as their own, every other free marker off one of
                         # its one-body tracks (figure 10847)
+                        moves.append((key, f, a, b, None))
+                    elif (rules.SPHERE_OFF_BODY and not swaps and off and not at_home
+                          and (_body_sds(vis, P, sd_of, f, kept, [a], one_body * s0,
+                                         voter_frames)[1] > rigid * s0).any()
+                          and len(open_ := open_free()) > 1
+                          and (b := _sphere_pick(X, P, *_pair_sd(P, min_frames), f, a,
+                                                 open_, one_body)) is not None):
+                        # the same, with several free markers where nothing finds it off
+                        # and none that continues it clearly best: the one whose joint
+                        # sphere it lies on, the others' off (figure 12527)
                         moves.append((key, f, a, b, None))
         if not moves:
             break

@@ -63,6 +63,9 @@ CONTINUITY_OFF_BODY = True   # ... also an off-body piece with several free mark
 #                              nothing finds it off (ONLY_FREE_MARKER's case; figure 2738)
 BODY_FITS_FREE = True    # step 4c: an off-body piece no marker takes goes to the one free
 #                          marker whose one-body tracks all hold it (figure 10847)
+SPHERE_OFF_BODY = True   # step 4c: an off-body piece no marker, exchange or body takes, with
+#                          several free markers where nothing finds it off, goes to the one
+#                          whose joint sphere it lies on, the others' off (figure 12527)
 SPLIT_BODY_STAYS = True  # step 4c: an off-body piece every judge at home fits stays where a
 #                          one-body track there holds it too (figure 11934)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
@@ -80,6 +83,8 @@ VIRTUAL_FIT_RMS = 2.0  # ... judging there within this x s0 rms (true neighbours
 CONTINUITY_EXCHANGES = True  # step 8: exchanges no sphere or direction finds, by continuity
 CONTESTED_DIRECTIONS = True  # ... a direction veto needs no body for the exchange (8759)
 STEP8_JUMPS = True  # step 8 makes no exchange that step 4's jump test would undo (4455)
+PAIR_FRAMES = True  # step 8: last, spheres in a two-track body's frame with its joint to a
+#                     body of three or more as the third point (figure 12020)
 AGREEING_SPHERES = True  # step 8: last, an exchange that two or more bodies across one
 #                          joint prefer and none opposes, where no sphere decides (10034)
 AGREEING_SPHERES_GAIN = 10.0   # ... each of two by at least this drop in the residual sum of
