@@ -818,6 +818,75 @@ def test_a_piece_its_judges_and_a_body_track_hold_stays_on_its_marker(monkeypatc
     assert fig.marker_segment[4] != fig.marker_segment[42]
 
 
+def test_an_off_body_piece_goes_to_the_free_marker_whose_joint_sphere_it_lies_on(monkeypatch):
+    """Held-out figure 12527 (first run at stop 60): the linkage put marker 50's last 19
+    frames (381-399; 2-marker segment 16, both its markers hidden by then) on marker 23 of
+    segment 8, hidden from frame 373. Step 4c finds the piece off marker 23's body (its
+    segment partner 13 x s0 off it), but no judge places it: markers 49 and 50 are both
+    free with no track seen with the piece, and continuity does not tell them apart. In
+    the frame of 4-marker segment 13 (the parent, seen then with three of its markers:
+    ``_partial_frames``) the piece lies on marker 50's sphere about their joint (radius
+    234 mm) at 1.2 x its rms and 27 x off marker 49's (205 mm); it now goes to marker 50
+    (``SPHERE_OFF_BODY``); without it the piece stays on marker 23."""
+    fig, _, ids = _right_then_off(monkeypatch, 12527, "SPHERE_OFF_BODY", False)
+    assert [23, 50] in ids
+    assert fig.marker_segment[23] != fig.marker_segment[50]
+
+
+def test_a_two_marker_body_and_its_joint_judge_an_exchange_by_spheres(monkeypatch):
+    """Held-out figure 12020 (first run at stop 60): the linkage joined marker 21's first
+    23 frames to marker 20, the other marker of 2-marker leaf segment 8, hidden then, 21
+    frames on, and left marker 21's later frames an id alone. Segment 8's parent has two
+    markers, so no body of three tracks is one joint away, and the continuity exchange
+    gains 1.81, under its margin of 2. In the frame of the parent's two markers with their
+    joint to the grandparent (three markers) as the third point (``_pair_frames``) the
+    piece sits 32 residual sds off as merged and 1.3 exchanged, the fit at 1.42 x s0 (the
+    markers are 253 and 361 mm from their joint); step 8 now makes that exchange last
+    (``PAIR_FRAMES``); without it the two markers stay mixed."""
+    fig, _, ids = _right_then_off(monkeypatch, 12020, "PAIR_FRAMES", False)
+    assert [20, 21] in ids
+    assert fig.marker_segment[20] == fig.marker_segment[21]
+
+
+def test_partial_and_pair_frames_hold_a_rigid_body_still():
+    """``_partial_frames`` (a body seen with three of its four tracks) and ``_pair_frames``
+    (two tracks and their joint to a body of three or more tracks) map each frame's points
+    onto the first frame's: a point fixed in the body (a track, the true joint) stays put
+    in its frame."""
+    from skeleton.markersets.bodies import _one_body_frames, _pair_frames, _partial_frames
+    from skeleton.markersets.tracks import _pair_sd
+    from scipy.spatial.transform import Rotation
+    g = np.random.default_rng(7)
+    T = 300
+    Ra = Rotation.from_rotvec(np.c_[np.sin(np.arange(T) / 30), np.cos(np.arange(T) / 45),
+                                    np.sin(np.arange(T) / 20)] * 0.8)
+    Rb = Rotation.from_rotvec(np.c_[np.cos(np.arange(T) / 25), np.sin(np.arange(T) / 35),
+                                    np.sin(np.arange(T) / 40 + 1)] * 1.2)
+    root = np.c_[np.arange(T) * 0.002, np.zeros(T), np.ones(T)]
+    body_a = np.array([[0.1, 0, 0], [0, 0.12, 0], [0, 0, 0.09], [0.08, 0.07, 0.02]])
+    joint = np.array([0.25, 0.05, 0.0])          # in body a's frame
+    body_b = np.array([[0.2, 0.03, 0.0], [0.31, -0.04, 0.05]])   # about the joint
+    A = np.stack([Ra.apply(p) for p in body_a], 1) + root[:, None]
+    c = Ra.apply(joint) + root
+    B = np.stack([Rb.apply(p) for p in body_b], 1) + c[:, None]
+    P = np.concatenate([A, B], 1) + g.normal(0, 1e-4, (T, 6, 3))
+    P[150:170, 0] = np.nan                       # body a seen with three tracks there
+    S, s0 = _pair_sd(P, 10)
+    _, one, frames = _one_body_frames(P, S, s0, 1.5, 100)
+    assert list(frames) == [(0, 1, 2, 3)]
+    part = _partial_frames(P, frames)
+    fr, R, t = part[(0, 1, 2, 3)]
+    assert set(range(150, 170)) <= set(fr.tolist())
+    y = np.einsum("bij,bj->bi", R, P[fr, 1]) + t
+    assert np.abs(y - y[0]).max() < 1e-3
+    pf, lent = _pair_frames(P, one, frames, s0)
+    assert list(pf) == [(4, 5)] and lent[4, 5] == (0, 1, 2, 3)
+    fr, R, t = pf[4, 5]
+    y = np.einsum("bij,bj->bi", R, c[fr]) + t     # the true joint, fixed in the frame
+    assert fr.size == T - 20 and np.abs(y - y[0]).max() < 2e-3   # body a seen in full
+    assert _pair_frames(P, np.zeros_like(one), frames, s0) == ({}, {})
+
+
 def test_a_voter_move_is_clear_only_by_the_margin_over_every_other_split():
     """``_clear_voter_moves``: figure 313's wrong move (4.64) beside a right one (4.59) is
     not clear; the same split in either order is not another split."""
