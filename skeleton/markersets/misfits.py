@@ -89,7 +89,20 @@
    of the child segment, moved to a marker two joints away). ``/tmp`` driver, one
    ``_repairs_from`` per cached figure with the rule on (it withdraws an off-body flag on
    most figures, so it was not re-run off): 4738/4738, every cached figure of 0-1737,
-   2146-3573, 3880-5136 and 11737-11999 and 52 others; not run on the other 4,383.
+   2146-3573, 3880-5136 and 11737-11999 and 52 others; not run on the other 4,383 then
+   (stop 58, on 6e5b524: all 4,383 right, 2175/2175 and 2242/2242 with named figures).
+   An off-body piece that no judge places, no marker fits, no exchange and no one-body
+   track takes, with several free markers where nothing finds it off and none that
+   continues it clearly best, goes to the one whose joint sphere it lies on
+   (``SPHERE_OFF_BODY``, stop 60, ``bodies._sphere_pick``: step 11's test in the frame of
+   each body one joint away, also where the body shows three of four or more tracks,
+   ``_partial_frames``, or two and a borrowed joint; within ``SPHERE_FIT_Z`` (3) x the
+   sphere's rms there and off no body's by ``SPHERE_MISFIT_Z`` (6), every other such
+   marker off its own by 6 on some body). Held-out figure 12527: marker 50's last 19
+   frames (2-marker segment 16, both markers hidden then) sat on marker 23 of another
+   segment; markers 49 and 50 were free with no track seen with the piece; in the frame
+   of segment 13 (the parent, three of its four markers seen) the piece lay on marker
+   50's sphere (234 mm) at 1.2 x its rms and 27 x off marker 49's (205 mm).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """

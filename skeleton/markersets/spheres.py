@@ -120,7 +120,15 @@
    Last, where no sphere decides, no direction and no continuity: an exchange that two or
    more bodies across one joint prefer, each by ``AGREEING_SPHERES_GAIN`` (10) in the
    residual sum of squares over its variance, and none opposes (``AGREEING_SPHERES``,
-   ``_spheres_agree``; stop 56, held-out figure 10034).
+   ``_spheres_agree``; stop 56, held-out figure 10034). After that, where still nothing
+   decides, the spheres in the frame of a two-track body (two tracks moving as one that
+   no body of three holds, with their joint to the body of three or more they fit best,
+   ``VIRTUAL_JOINT_RMS``, as the third point; ``_pair_frames``), judged as above within
+   ``VIRTUAL_FIT_RMS`` (``PAIR_FRAMES``, stop 60, ``_pair_exchange``). Held-out figure
+   12020: marker 21's first 23 frames (2-marker leaf segment 8, whose parent has two
+   markers) joined to marker 20, its partner, hidden then; continuity gained 1.81, under
+   its margin; in the frame of the parent's two markers and their joint with the
+   grandparent the piece sat 32 residual sds off as merged, 1.3 exchanged (fit 1.42 x s0).
 11. sphere joins (``_join_by_spheres``, ``SPHERE_JOINS``): where the steps above still end
    with more markers than the bound, a short piece may have no continuation that motion
    or pose alignment can judge (figure 8203, held out at stop 51: marker 21's first 11
