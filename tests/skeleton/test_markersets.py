@@ -1040,8 +1040,10 @@ def test_partners_that_cannot_tell_leave_the_pair_to_its_direction(monkeypatch):
     of 1) and the jumps (dropped: a drifting partner), and never looked at the direction,
     which turns 35 deg across the gap when right and 156 deg as merged. A pair moving as one
     body (sd <= 1.5 x s0) whose partners decide nothing is now judged by its direction
-    (``TURN_FALLBACK``)."""
-    _, _, ids = _right_then_off(monkeypatch, 896, "TURN_FALLBACK", False, **WITHOUT_STOP40)
+    (``TURN_FALLBACK``). (Since stop 60 step 8's ``PAIR_FRAMES`` also puts it right; it
+    is shown with that rule off.)"""
+    _, _, ids = _right_then_off(monkeypatch, 896, "TURN_FALLBACK", False, **WITHOUT_STOP40,
+                                PAIR_FRAMES=False)
     assert [33, 34] in ids
 
 
@@ -1106,8 +1108,11 @@ def test_a_piece_seen_while_its_partner_is_hidden_is_judged_by_continuity(monkey
     sit about equally far from their joint (3293: spheres 1.51 and 1.35 residual sds), but
     the piece jumps at both ends where it is (3293: 79 and 53 mm at gaps of 11 and 4
     frames; 6.3 and 16.4 mm on its own marker). Step 8 now makes the exchange that lowers
-    the continuity cost by >= 2 (4 until stop 46; ``CONTINUITY_EXCHANGES``)."""
-    _, _, ids = _right_then_off(monkeypatch, k, "CONTINUITY_EXCHANGES", False)
+    the continuity cost by >= 2 (4 until stop 46; ``CONTINUITY_EXCHANGES``). (Since stop 60
+    step 8's ``PAIR_FRAMES``, which comes after it, also puts 611 right; they are shown with
+    that rule off.)"""
+    _, _, ids = _right_then_off(monkeypatch, k, "CONTINUITY_EXCHANGES", False,
+                                PAIR_FRAMES=False)
     assert [a, b] in ids
 
 
@@ -1310,13 +1315,14 @@ def test_the_threshold_keeps_half_the_sd_of_the_least_rigid_partner(monkeypatch)
     fragment (frames 0-178) to marker 17's last (224-399), the other marker of its
     2-marker segment. Only the order takes the whole sd (stop 48 screen: the whole sd in
     the threshold too lost this figure). Since stop 53 step 8's contested direction vetoes
-    (``CONTESTED_DIRECTIONS``) keep that pair right; they are off for the failure."""
+    (``CONTESTED_DIRECTIONS``) keep that pair right, since stop 60 step 8's ``PAIR_FRAMES``
+    too; they are off for the failure."""
     import functools
 
     import skeleton.markersets as ms
     whole = functools.partial(ms._merge_pass, partner_sd_weight=1.0)
     fig, off, ids = _right_then_off(monkeypatch, 2356, "_merge_pass", whole,
-                                    CONTESTED_DIRECTIONS=False)
+                                    CONTESTED_DIRECTIONS=False, PAIR_FRAMES=False)
     assert _mixed_ids(fig, off, ids) == [[16, 17], [16, 17]]
 
 
