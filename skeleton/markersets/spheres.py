@@ -342,18 +342,12 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                     if not rules.DIRECTION_SEES_MOVED or (sum(len(pts[f]) for f in moved)
                                                     >= rules.DIRECTION_MOVED_FRAMES):
                         spread.append((kept[body], _direction_spread(ends, frames[body])))
-                    if v is None:
-                        continue
-                    sk, sm, pk, pm, n = v
-                    var = min(sk, sm) / (n - 5)
-                    if not var <= (gate * s0) ** 2 * n / (n - 5):
+                    if v is None or (j := _judgement(v, gate * s0, min_misfit)) is None:
                         continue                 # not a neighbour across one joint
-                    kp, mv = np.sqrt(pk / var), np.sqrt(pm / var)
-                    gains.append((sk - sm) / var)
-                    if kp >= min_misfit and kp >= min_misfit * mv:
-                        gain = max(gain, (sk - sm) / var)
-                    if mv >= min_misfit and mv >= min_misfit * kp:
-                        veto = True
+                    gains.append(j[0])
+                    if j[1]:
+                        gain = max(gain, j[0])
+                    veto = veto or j[2]
                 if gain > 0 and not veto and (best is None or gain > best[0]):
                     best = (gain, a, b, na, nb)
                 if rules.PAIR_FRAMES and not veto:
@@ -395,6 +389,21 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
     return groups, changed
 
 
+def _judgement(v, fit_rms, min_misfit) -> tuple | None:
+    """(gain, decides, vetoes) of a sphere verdict ``v`` (``_sphere_verdict``): the drop in
+    the residual sum of squares over its variance, whether the moved pieces sit >=
+    ``min_misfit`` residual sds off as merged and under 1 / ``min_misfit`` of that
+    exchanged, or the reverse; None where the better fit is worse than ``fit_rms`` (m) rms
+    (not a neighbour across one joint)."""
+    sk, sm, pk, pm, n = v
+    var = min(sk, sm) / (n - 5)
+    if not var <= fit_rms ** 2 * n / (n - 5):
+        return None
+    kp, mv = np.sqrt(pk / var), np.sqrt(pm / var)
+    return ((sk - sm) / var, bool(kp >= min_misfit and kp >= min_misfit * mv),
+            bool(mv >= min_misfit and mv >= min_misfit * kp))
+
+
 def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple | None:
     """Last in step 8 (``PAIR_FRAMES``): of the alternatives ``pending`` (a, b, na, nb,
     moved) that no body vetoed, the one with the largest gain on which the spheres in a
@@ -420,17 +429,12 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
             if a in body or b in body or a in lent[body] or b in lent[body]:
                 continue
             v = _sphere_verdict({f: points(body, f) for f in ga + gb}, ga, gb, na, nb, moved)
-            if v is None:
+            if v is None or (j := _judgement(v, rules.VIRTUAL_FIT_RMS * s0,
+                                              min_misfit)) is None:
                 continue
-            sk, sm, pk, pm, n = v
-            var = min(sk, sm) / (n - 5)
-            if not var <= (rules.VIRTUAL_FIT_RMS * s0) ** 2 * n / (n - 5):
-                continue
-            kp, mv = np.sqrt(pk / var), np.sqrt(pm / var)
-            if kp >= min_misfit and kp >= min_misfit * mv:
-                gain = max(gain, (sk - sm) / var)
-            if mv >= min_misfit and mv >= min_misfit * kp:
-                veto = True
+            if j[1]:
+                gain = max(gain, j[0])
+            veto = veto or j[2]
         if gain > 0 and not veto and (best is None or gain > best[0]):
             best = (gain, a, b, na, nb)
     return best
