@@ -127,16 +127,23 @@ def _virtual_frames(P, frames, s0, joint_rms=rules.VIRTUAL_JOINT_RMS,
     return out
 
 
-def _pair_frames(P, one, frames, s0, joint_rms=rules.VIRTUAL_JOINT_RMS,
-                 min_lever=rules.VIRTUAL_MIN_LEVER_M, min_frames=50) -> tuple[dict, dict]:
+def _pair_frames(P, one, frames, s0, joint_rms=None, min_lever=rules.VIRTUAL_MIN_LEVER_M,
+                 min_frames=50) -> tuple[dict, dict]:
     """Frames of two-track bodies (``PAIR_FRAMES``, step 8): each pair of tracks moving as
     one body (``one``) that no body of ``frames`` (three or more tracks) holds, with its
     joint to the body it fits best as the third point: in that body's frame the two tracks
     keep spheres about one centre (``_common_sphere``, rms <= ``joint_rms`` x s0 over >=
-    ``min_frames`` frames), >= ``min_lever`` off the line through them. Returns ({(i, j):
-    (frames, R, t)} as ``_body_frame`` gives, over the frames both tracks and that body are
-    seen; {(i, j): the body lent}). Figure 12020 (held out at stop 60): a 2-marker leaf
-    segment under a 2-marker segment, whose parent has three markers."""
+    ``min_frames`` frames; ``PAIR_JOINT_RMS``), >= ``min_lever`` off the line through them.
+    Returns ({(i, j): (frames, R, t)} as ``_body_frame`` gives, over the frames both tracks
+    and that body are seen; {(i, j): the body lent}). Figure 12020 (held out at stop 60): a
+    2-marker leaf segment under a 2-marker segment, whose parent has three markers; its
+    joint fits at 1.61 x s0. On the final groups of figures 7375 and 12020 (14 such pairs,
+    all one segment's), the best joint to a body one joint away fitted at 0.85-2.39 x s0
+    (9 pairs); for the 5 pairs with no such body the best fitted at 1.24 (a sibling), 4.57,
+    6.57, 8.44 and 11.58. At the first gate, ``VIRTUAL_JOINT_RMS`` (5), figure 7375's
+    2-marker segment 12 borrowed the 4.57 joint from a body three joints away, and its
+    frame then exchanged two pieces wrongly (2.21 residual sds, just over the 2)."""
+    joint_rms = rules.PAIR_JOINT_RMS if joint_rms is None else joint_rms
     out, lent = {}, {}
     held = {frozenset((x, y)) for B in frames for x in B for y in B if x != y}
     for i, j in zip(*np.nonzero(np.triu(one, 1))):

@@ -85,6 +85,7 @@ CONTESTED_DIRECTIONS = True  # ... a direction veto needs no body for the exchan
 STEP8_JUMPS = True  # step 8 makes no exchange that step 4's jump test would undo (4455)
 PAIR_FRAMES = True  # step 8: last, spheres in a two-track body's frame with its joint to a
 #                     body of three or more as the third point (figure 12020)
+PAIR_JOINT_RMS = 2.0   # ... that joint fitting within this x s0 (7375: 4.57, three joints off)
 AGREEING_SPHERES = True  # step 8: last, an exchange that two or more bodies across one
 #                          joint prefer and none opposes, where no sphere decides (10034)
 AGREEING_SPHERES_GAIN = 10.0   # ... each of two by at least this drop in the residual sum of

@@ -850,6 +850,19 @@ def test_a_two_marker_body_and_its_joint_judge_an_exchange_by_spheres(monkeypatc
     assert fig.marker_segment[20] == fig.marker_segment[21]
 
 
+def test_a_two_marker_body_borrows_only_a_joint_that_fits_as_a_neighbours(monkeypatch):
+    """Figure 7375 (screened at stop 60): with the pair frames' joint gate at step 8's
+    ``VIRTUAL_JOINT_RMS`` (5 x s0), 2-marker segment 12, whose only neighbour (its parent,
+    segment 8) has two markers, borrowed a joint three joints away fitting at 4.57 x s0;
+    in that frame two pieces of segment 8's markers 20 and 21 sat 2.21 residual sds off,
+    just over the decisive 2, and were exchanged wrongly. Joints to a body one joint away
+    fit at 0.85-2.39 x s0 there and in 12020; at ``PAIR_JOINT_RMS`` (2) the figure stays
+    right."""
+    fig, _, ids = _right_then_off(monkeypatch, 7375, "PAIR_JOINT_RMS", 5.0)
+    assert [20, 21] in ids
+    assert fig.marker_segment[20] == fig.marker_segment[21]
+
+
 def test_partial_and_pair_frames_hold_a_rigid_body_still():
     """``_partial_frames`` (a body seen with three of its four tracks) and ``_pair_frames``
     (two tracks and their joint to a body of three or more tracks) map each frame's points
