@@ -123,7 +123,8 @@
    ``_spheres_agree``; stop 56, held-out figure 10034). After that, where still nothing
    decides, the spheres in the frame of a two-track body (two tracks moving as one that
    no body of three holds, with their joint to the body of three or more they fit best,
-   ``VIRTUAL_JOINT_RMS``, as the third point; ``_pair_frames``), judged as above within
+   within ``PAIR_JOINT_RMS`` (2) x s0, as the third point; ``_pair_frames``; figure 7375
+   was lost at 5, a joint three joints away at 4.57), judged as above within
    ``VIRTUAL_FIT_RMS`` (``PAIR_FRAMES``, stop 60, ``_pair_exchange``). Held-out figure
    12020: marker 21's first 23 frames (2-marker leaf segment 8, whose parent has two
    markers) joined to marker 20, its partner, hidden then; continuity gained 1.81, under
