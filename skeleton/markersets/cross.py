@@ -52,7 +52,12 @@
    out at stop 42: marker 12's last 53 frames (a 2-marker segment) went to marker 22 of
    another 2-marker segment, on voters' partners across a joint that barely moved until
    then; at home the piece sat 1.3 x s0 from its segment partner and 3.9 x from a marker
-   across that joint, on marker 22 9.2 x from its segment partner) - nor one that makes a
+   across that joint, on marker 22 9.2 x from its segment partner; since stop 61 "further
+   off" compares the median sd to each body's one-body tracks, not the largest,
+   ``MEDIAN_OFF_BODY``: in held-out figure 13314 marker 12's last 71 frames, on marker 4 of
+   the parent segment, were kept from home by marker 23, one body with marker 12's first
+   268 frames only while the joint between was still, 6.13 x s0 off the piece against the
+   3.62 of the farthest track it left; the medians are 1.10 and 3.21) - nor one that makes a
    moved piece step 4c's misfit (above the jump bound on every judge of its new marker's
    fragments) where a judge at home finds it fitting (``NO_NEW_MISFITS``; figure 4430,
    held out at stop 42: marker 12's first 16 frames went to marker 9 of another segment on
@@ -295,8 +300,12 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                     continue
                 if (home <= rigid * s0).all():
                     return True
-                if rules.LESS_OFF_BODY and there.max() > home.max():
-                    # off both bodies, further off the new one (figure 4579)
+                further = (np.median(there) > np.median(home) if rules.MEDIAN_OFF_BODY
+                           else there.max() > home.max())
+                if rules.LESS_OFF_BODY and further:
+                    # off both bodies, further off the new one (figure 4579); by the
+                    # median sd, where a track one body with the kept fragments only while
+                    # a joint was still is off the piece (MEDIAN_OFF_BODY, figure 13314)
                     return True
             return False
 

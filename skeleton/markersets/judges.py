@@ -108,7 +108,7 @@ def _best_by_jumps(X, vis, ga0, gb0, alts, Pq, margin):
 
 
 def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
-            with_frames=False, with_judges=False):
+            with_frames=False, with_judges=False, drift=None):
     """How far fragment ``f`` sits from where the fragments ``kept`` (one marker) are.
     Judges: the tracks of P (T, M, 3) (not in ``excl``) rigid to f and to each kept
     fragment they are seen with (``sd_of(h)``: (M,) distance sd of fragment h to every
@@ -119,7 +119,8 @@ def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
     kept fragments (``_jump_ss`` <= ``bound``). Returns the ``_jump_ss`` (m^2)
     of kept + [f] on each judge (a piece of another marker sits at other distances; empty
     when no track judges); ``with_frames``: also the frames each judge is seen with f;
-    ``with_judges``: also the judges' track indices."""
+    ``with_judges``: also the judges' track indices. ``drift`` (s0, body_sd): each judge's
+    cost is divided by its drift allowance (``_drift_allowance``)."""
     none = ((np.zeros(0), np.zeros(0, int)) if with_frames or with_judges
             else np.zeros(0))
     if not kept:
@@ -132,11 +133,30 @@ def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
     frames = (vis[:, kept + [f]].any(1)[:, None] & ~np.isnan(P[:, js, 0])).sum(0)
     ss = _jump_ss(X, vis, kept + [f], P[:, js])
     use = (ss(kept) <= bound) & (frames >= partner_frames)
+    if drift is not None:
+        cost = ss(kept + [f]) / _drift_allowance(vis, P, sd_of, f, kept, js, *drift)
+        return (cost[use], js[use]) if with_judges else cost[use]
     if with_frames:
         return ss(kept + [f])[use], (vis[:, f][:, None] & ~np.isnan(P[:, js[use], 0])).sum(0)
     if with_judges:
         return ss(kept + [f])[use], js[use]
     return ss(kept + [f])[use]
+
+
+def _drift_allowance(vis, P, sd_of, f, kept, js, s0, body_sd) -> np.ndarray:
+    """(len(js),): how much larger a judge's ``_jump_ss`` of fragment ``f`` may be where the
+    judge drifts (``DRIFT_JUDGES``; figures 12460 and 12450). A judge across a joint that barely
+    moves is rigid to a marker within ``rigid_sd`` yet wanders about its mean distance by
+    drift^2 = sd^2 - ``body_sd``^2 (sd: its largest distance sd to the fragments ``kept``;
+    none for a judge of one body with them). A piece of n frames then sits off that mean by
+    a variance of s0^2 / n + drift^2, not s0^2 / n, so its n x offset^2 (the ``_jump_ss`` it
+    adds) is scaled by 1 + n x drift^2 / s0^2 before it meets the bound."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        sd = np.nanmax(np.stack([sd_of(h)[js] for h in kept]), 0)
+    drift2 = np.maximum(np.nan_to_num(sd) ** 2 - body_sd ** 2, 0.0)
+    n = (vis[:, f][:, None] & ~np.isnan(P[:, js, 0])).sum(0)
+    return 1.0 + n * drift2 / s0 ** 2
 
 
 def _one_body(vis, P, sd_of, kept, excl, body_sd, body_frames) -> np.ndarray:
@@ -208,10 +228,12 @@ def _unjudged_on(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound,
                               partner_frames))
 
 
-def _fits_on(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, partner_frames) -> bool:
+def _fits_on(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, partner_frames,
+             drift=None) -> bool:
     """Fragment ``f`` fits the marker of the fragments ``kept``: ``_fits`` of ``_misfit``
-    (some judge, every one within ``bound``) and not ``_off_body``."""
-    return (_fits(_misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames),
-                  bound)
+    (some judge, every one within ``bound``; ``drift``: ``_misfit``'s) and not
+    ``_off_body``."""
+    return (_fits(_misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
+                          drift=drift), bound)
             and not _off_body(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound,
                               partner_frames))

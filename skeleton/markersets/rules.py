@@ -38,6 +38,7 @@ CLEAR_VOTER_MOVES = True   # ... or where that move gains the margin over every 
 
 MISFITS_ARE_BAD = True   # step 4b: a marker holding a misfit piece (step 4c's) is examined
 LESS_OFF_BODY = True     # step 4b: nor a move off one body onto one it is further off
+MEDIAN_OFF_BODY = True   # ... further off by the median sd to the one-body tracks (13314)
 RIGID_SOMEWHERE = True   # step 4b: a voter's partner counts where rigid to some alternative (7429)
 JUMPS_PER_MARKER = True  # step 4b's jump veto: a partner fits per marker, not per pair (9533)
 BODY_CONFIRMS = True     # step 4b: an exchange gaining less than the margin, by at least
@@ -68,6 +69,8 @@ SPHERE_OFF_BODY = True   # step 4c: an off-body piece no marker, exchange or bod
 #                          whose joint sphere it lies on, the others' off (figure 12527)
 SPLIT_BODY_STAYS = True  # step 4c: an off-body piece every judge at home fits stays where a
 #                          one-body track there holds it too (figure 11934)
+DRIFT_JUDGES = True   # steps 4c and 10: on the marker a piece would move to, a judge that
+#                       drifts across a joint allows for its drift (figures 12450, 12460)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
 #                          also find the piece on its own (figure 4083)
 
