@@ -20,6 +20,23 @@ def _sphere_fit(y) -> tuple:
     return c, r, float(np.sqrt(np.mean((np.linalg.norm(y - c, axis=1) - r) ** 2)))
 
 
+def _sphere_z(y, sphere) -> float:
+    """How far points ``y`` (N, 3) lie off ``sphere`` (``_sphere_fit``'s centre, radius,
+    rms): the rms of their radius residuals in units of the sphere's own rms (steps 4c and
+    11)."""
+    c, r, rms = sphere
+    res = np.linalg.norm(y - c, axis=1) - r
+    return float(np.sqrt(np.mean(res ** 2))) / max(rms, 1e-12)
+
+
+def _in_frame_order(fr, R, t) -> tuple:
+    """(frames, R, t) of a body's frame pieces (lists of arrays) joined and sorted by frame,
+    as ``_body_frame`` gives them."""
+    fr = np.concatenate(fr)
+    o = np.argsort(fr, kind="stable")
+    return fr[o], np.concatenate(R)[o], np.concatenate(t)[o]
+
+
 def _bodies(one, S) -> list:
     """Sets (sorted tuples, >= 3) of tracks that all move as one body with each other
     (``one``: (M, M) bool): each track with its one-body partners taken in order of sd
@@ -121,9 +138,7 @@ def _virtual_frames(P, frames, s0, joint_rms=rules.VIRTUAL_JOINT_RMS,
             R.append(Rk)
             t.append(tk)
         if len(fr) > 1:
-            fr = np.concatenate(fr)
-            o = np.argsort(fr, kind="stable")
-            out[B] = (fr[o], np.concatenate(R)[o], np.concatenate(t)[o])
+            out[B] = _in_frame_order(fr, R, t)
     return out
 
 
@@ -202,9 +217,7 @@ def _partial_frames(P, frames) -> dict:
             fr.append(rows)
             R.append(Rk)
             t.append(tk)
-        fr = np.concatenate(fr)
-        o = np.argsort(fr, kind="stable")
-        out[B] = (fr[o], np.concatenate(R)[o], np.concatenate(t)[o])
+        out[B] = _in_frame_order(fr, R, t)
     return out
 
 
@@ -307,11 +320,10 @@ def _sphere_pick(X, P, S, s0, f, a, candidates, body_sd=1.5, body_frames=100,
             yb = pp(body, b)
             if len(yb) < 50:
                 continue
-            c, r, rms = _sphere_fit(yb)
-            if not rms <= gate * s0:
+            sphere = _sphere_fit(yb)
+            if not sphere[2] <= gate * s0:
                 continue
-            res = np.linalg.norm(y - c, axis=1) - r
-            z[b].append(float(np.sqrt(np.mean(res ** 2))) / max(rms, 1e-12))
+            z[b].append(_sphere_z(y, sphere))
     on = [b for b in candidates if z[b] and min(z[b]) <= rules.SPHERE_FIT_Z
           and max(z[b]) < rules.SPHERE_MISFIT_Z]
     if len(on) == 1 and all(z[b] and max(z[b]) >= rules.SPHERE_MISFIT_Z

@@ -158,7 +158,7 @@ import numpy as np
 from . import rules
 from .bodies import (
     _direction_spread, _one_body_frames, _pair_frames, _points_in, _sphere_fit,
-    _sphere_verdict, _virtual_frames
+    _sphere_verdict, _sphere_z, _virtual_frames
 )
 from .continuity import _continuity_cost
 from .judges import _jumps
@@ -211,11 +211,9 @@ def _join_by_spheres(X, groups, n_min, min_frames, max_step=np.inf, body_sd=1.5,
                 key = (body, b if len(points(body, b)) >= len(points(body, a)) else a)
                 if key not in spheres:
                     spheres[key] = _sphere_fit(yb)
-                c, r, rms = spheres[key]
-                if not rms <= fit_rms * s0:
+                if not spheres[key][2] <= fit_rms * s0:
                     continue                 # not a neighbour across one joint
-                res = np.linalg.norm(ya - c, axis=1) - r
-                zs.append(float(np.sqrt(np.mean(res ** 2))) / max(rms, 1e-12))
+                zs.append(_sphere_z(ya, spheres[key]))
             return (min(zs), max(zs)) if zs else (np.nan, np.nan)
 
         verdict = {}
