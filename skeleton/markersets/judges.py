@@ -133,14 +133,14 @@ def _misfit(X, vis, P, sd_of, f, kept, excl, rigid_sd, bound, partner_frames,
     frames = (vis[:, kept + [f]].any(1)[:, None] & ~np.isnan(P[:, js, 0])).sum(0)
     ss = _jump_ss(X, vis, kept + [f], P[:, js])
     use = (ss(kept) <= bound) & (frames >= partner_frames)
+    cost = ss(kept + [f])
     if drift is not None:
-        cost = ss(kept + [f]) / _drift_allowance(vis, P, sd_of, f, kept, js, *drift)
-        return (cost[use], js[use]) if with_judges else cost[use]
+        cost = cost / _drift_allowance(vis, P, sd_of, f, kept, js, *drift)
     if with_frames:
-        return ss(kept + [f])[use], (vis[:, f][:, None] & ~np.isnan(P[:, js[use], 0])).sum(0)
+        return cost[use], (vis[:, f][:, None] & ~np.isnan(P[:, js[use], 0])).sum(0)
     if with_judges:
-        return ss(kept + [f])[use], js[use]
-    return ss(kept + [f])[use]
+        return cost[use], js[use]
+    return cost[use]
 
 
 def _drift_allowance(vis, P, sd_of, f, kept, js, s0, body_sd) -> np.ndarray:
