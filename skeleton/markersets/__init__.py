@@ -47,6 +47,7 @@ from .cross import _repair_cross
 from .joins import _join_by_continuity, _join_by_partners, _split_joins
 from .linkage import _merge_pass
 from .misfits import _move_misfits
+from .model import _model_check
 from .spheres import _join_by_spheres, _sphere_exchanges
 from .splits import _two_of_three
 from .swaps import _repair_swaps
@@ -195,6 +196,10 @@ def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
         groups = _join_by_spheres(X, [list(g) for g in res.groups], n_min, min_frames,
                                   max_step=max_step)
         if len(groups) < res.n_markers:
+            res = _with_groups(X, res, groups)
+    if rules.MODEL_CHECK:
+        groups = _model_check(X, [list(g) for g in res.groups], max_step)
+        if [sorted(g) for g in groups] != [sorted(g) for g in res.groups]:
             res = _with_groups(X, res, groups)
     return res
 

@@ -96,3 +96,16 @@ AGREEING_SPHERES_GAIN = 10.0   # ... each of two by at least this drop in the re
 CONTINUITY_MARGIN = 4.0      # steps 7b and 10: the most a join may cost in continuity
 CONTINUITY_EXCHANGE_MARGIN = 2.0   # step 8: the least gain in the continuity cost (1304)
 CONTINUITY_MM_PER_FRAME = (0.6, 0.009)   # a junction's typical miss: a x gap + b x gap^2 (mm)
+
+MODEL_CHECK = True      # step 12: every piece judged once more on its marker's one-body
+#                         mates (robust distance sds), ``model``; figures 14715, 13925
+MODEL_PAIR_FRAMES = 50  # ... a mate's distance measured over at least this many frames
+MODEL_BODY_SD = 1.5     # ... a one-body mate: robust distance sd within this x s0
+MODEL_MIN_FRAMES = 5    # ... a mate judges a piece it is seen with this many frames
+MODEL_OFF_Z = 3.0       # ... off: the judging mates' median rms miss beyond this x the sd
+MODEL_FIT_Z = 2.0       # ... fits: their median within this x
+MODEL_FAR_Z = 6.0       # ... and none beyond this x
+MODEL_EVIDENCE = 10     # ... seen by them for this many frames in all
+MODEL_STRONGER = True   # ... a piece fitting one mate moves where it fits several (12669)
+MODEL_STRONG_MATES = 2  # ... that many
+MODEL_ROUNDS = 20       # ... one change a round

@@ -1580,3 +1580,66 @@ def test_a_2_marker_segments_end_piece_is_judged_in_its_parents_borrowed_frame(m
     assert [7, 8] in ids and [8] in ids and len(ids) == fig.n_markers
     seg = fig.marker_segment
     assert seg[7] == seg[8] and (seg == seg[7]).sum() == 2
+
+
+def test_model_check_moves_a_piece_off_every_mate_to_the_marker_it_fits(monkeypatch):
+    """Held-out figure 14715 (first run at stop 62): the linkage and steps 4-11 left marker
+    24's last 13 frames (a 2-marker segment) on marker 18 of another 2-marker segment, 31.7
+    x the pair's robust sd off marker 18's one mate and 1.0 x on marker 24's. Step 12
+    (``MODEL_CHECK``, ``model._model_check``) moves it to marker 24, the one marker free
+    over those frames that it fits; without it the piece stays."""
+    fig, _, ids = _right_then_off(monkeypatch, 14715, "MODEL_CHECK", False)
+    assert [18, 24] in ids
+    assert fig.marker_segment[18] != fig.marker_segment[24]
+
+
+@pytest.mark.parametrize("k,a,b", [(13925, 10, 22), (13725, 6, 12)])
+def test_model_check_exchanges_pieces_each_off_its_marker(monkeypatch, k, a, b):
+    """Figures 13925 and 13725 (wrong since stop 60's code first met them): markers 10 (a
+    2-marker segment) and 22 (a 3-marker child segment), and markers 6 and 12 (two 2-marker
+    sibling segments), hold each other's last pieces. Each piece is off its marker's mates
+    (median 4.1 and 37.1 x the robust sd; 7.3, 3.7, 91.1 and 25.4) and fits the other's;
+    step 12 exchanges them, one exchange a round (13725 takes two rounds); without it both
+    markers stay mixed."""
+    fig, _, ids = _right_then_off(monkeypatch, k, "MODEL_CHECK", False)
+    assert [a, b] in ids
+
+
+def test_model_check_moves_a_piece_fitting_one_mate_where_it_fits_several(monkeypatch):
+    """Held-out figure 12669 (first run at stop 60): marker 7's first 14 frames (a 4-marker
+    segment) sat on marker 1 of a 2-marker segment, fitting marker 1's one mate (1.0 x the
+    robust sd: a distance from one point is a sphere, which a piece of another segment may
+    cross) while marker 7, free over those frames, has two mates fitting it (0.9, 1.0) and
+    a third 4.1 x off. ``MODEL_STRONGER`` moves such a piece to the one free marker that
+    fits it on two or more mates; without it the piece stays on marker 1."""
+    fig, _, ids = _right_then_off(monkeypatch, 12669, "MODEL_STRONGER", False)
+    assert [1, 7] in ids
+
+
+def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
+    """``model._Model.judge`` on a rigid 3-marker body moving at random, each marker two
+    fragments: the second piece of marker 0 judged at home fits (z about 1); replaced by a
+    point of the body 21 mm from marker 0 (13 mm nearer each mate) it is off both mates."""
+    from skeleton.markersets import rules
+    from skeleton.markersets.model import _Model, _fits, _off
+    rng = np.random.default_rng(3)
+    T = 300
+    local = np.array([[0.0, 0.0, 0.0], [0.08, 0.0, 0.0], [0.0, 0.06, 0.0]])
+    ang = np.cumsum(rng.normal(0, 0.03, (T, 3)), axis=0)
+    from scipy.spatial.transform import Rotation
+    R = Rotation.from_rotvec(ang).as_matrix()
+    pos = np.cumsum(rng.normal(0, 0.003, (T, 3)), axis=0)
+    M = np.einsum("tij,mj->tmi", R, local) + pos[:, None] + rng.normal(0, 0.001, (T, 3, 3))
+    X = np.full((T, 6, 3), np.nan)
+    for m in range(3):
+        X[:200, 2 * m], X[210:, 2 * m + 1] = M[:200, m], M[210:, m]
+    vis = ~np.isnan(X[..., 0])
+    groups = [[0, 1], [2, 3], [4, 5]]
+    home = _Model(X, vis, groups).judge(1, 0)
+    assert len(home) == 2 and _fits(home) and not _off(home)
+    assert 0.0008 < _Model(X, vis, groups).s0 < 0.002     # 1 mm noise: sd ~ 1.4 mm
+    other = np.einsum("tij,j->ti", R, [0.015, 0.015, 0.0]) + pos
+    X[210:, 1] = other[210:] + rng.normal(0, 0.001, (T - 210, 3))
+    moved = _Model(X, vis, groups).judge(1, 0)
+    assert _off(moved) and not _fits(moved)
+    assert min(z for z, _ in moved) > rules.MODEL_OFF_Z

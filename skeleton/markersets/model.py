@@ -1,0 +1,194 @@
+"""Step 12 of the marker-set merge: a last check of every piece against the rigid model.
+
+Steps 4-11 judge one kind of mistake each, with the sds of whole tracks; a piece they all
+miss stays on a wrong id. Step 12 (``_model_check``, ``rules.MODEL_CHECK``) looks at the
+merged markers once more as a model: for each marker, its one-body mates (tracks whose
+distance to it has a robust sd, 1.4826 x the median absolute deviation over their common
+frames, within ``MODEL_BODY_SD`` x s0, s0 the median of each track's smallest such sd) and
+the distance to each (the median). A piece (one fragment of a marker of two or more) is
+judged on the mates and distances its marker has without it: its rms miss of each mate's
+distance over the frames they share, in units of that pair's robust sd (at least s0).
+It is *off* where every mate seen with it for ``MODEL_MIN_FRAMES`` or more frames finds
+it more than ``MODEL_OFF_Z`` off, and it *fits* a marker where every such mate finds it
+within ``MODEL_FIT_Z`` and they see it for ``MODEL_EVIDENCE`` frames in all.
+
+- An off piece moves to the one marker, free over its frames (and paced: step 3's speed
+  gate), that it fits; where no marker is free, to the one marker it fits whose pieces over
+  its frames are off there and fit its own marker (an exchange).
+- A piece that fits its marker on one mate only moves to the one free marker it fits on
+  ``MODEL_STRONG_MATES`` or more (``MODEL_STRONGER``): a marker of a 2-marker segment
+  keeps one distance, a sphere a piece of another segment may cross.
+
+One change per round, the piece furthest off first; at most ``MODEL_ROUNDS`` rounds.
+Figures (held out at stop 62, wrong after steps 1-11): 14715, marker 24's last 13 frames
+on marker 18 of another 2-marker segment, 31.7 x off its one mate there and fitting marker
+24's; 13925, the last pieces of marker 10 (2-marker segment) and marker 22 exchanged;
+12669, marker 7's first 14 frames on marker 1 (2-marker segment), fitting its mate (a
+sphere) and fitting marker 7's two mates seen then.
+
+Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from . import rules
+from .tracks import _paced, _spans, _tracks
+
+
+def _robust(d: np.ndarray, min_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """(median, 1.4826 x median absolute deviation) of each column of d (T, M), NaN where
+    a column has fewer than ``min_frames`` finite values."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(d, axis=0)
+        mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
+    few = np.isfinite(d).sum(0) < min_frames
+    med[few] = np.nan
+    mad[few] = np.nan
+    return med, mad
+
+
+class _Model:
+    """The tracks of ``groups`` and what judges a piece on them (the module docstring)."""
+
+    def __init__(self, X, vis, groups):
+        self.X, self.vis, self.groups = X, vis, groups
+        self.P = _tracks(X, groups)
+        n = len(groups)
+        sd = np.full((n, n), np.nan)
+        for i in range(n):
+            d = np.linalg.norm(self.P - self.P[:, i:i + 1], axis=2)
+            sd[i] = _robust(d, rules.MODEL_PAIR_FRAMES)[1]
+            sd[i, i] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            self.s0 = float(np.nanmedian(np.nanmin(sd, 1)))
+
+    def judge(self, f, k, without=()) -> list[tuple[float, int]]:
+        """(z, frames) for each one-body mate of marker ``k`` seen with fragment ``f``:
+        the mates and their distances measured on k's fragments other than ``f`` and
+        ``without``, over frames where none of those is seen."""
+        X, vis, P = self.X, self.vis, self.P
+        frf = vis[:, f]
+        own = np.zeros(X.shape[0], bool)
+        for h in self.groups[k]:
+            if h != f and h not in without:
+                own |= vis[:, h]
+        own &= ~frf
+        if not own.any():
+            return []
+        Pk = np.full((X.shape[0], 3), np.nan)
+        for h in self.groups[k]:
+            if h != f and h not in without:
+                Pk[vis[:, h]] = X[vis[:, h], h]
+        others = [j for j in range(len(self.groups)) if j != k]
+        d_rest = np.linalg.norm(P[own][:, others] - Pk[own][:, None], axis=2)
+        c, s = _robust(d_rest, rules.MODEL_PAIR_FRAMES)
+        body = np.isfinite(s) & (s <= rules.MODEL_BODY_SD * self.s0)
+        out = []
+        for col in np.flatnonzero(body):
+            j = others[col]
+            if f in self.groups[j]:
+                continue
+            # the mate's track over f's frames, without fragments that are leaving it
+            t = frf & ~np.isnan(P[:, j, 0])
+            for h in without:
+                if h in self.groups[j]:
+                    t &= ~vis[:, h]
+            n = int(t.sum())
+            if n < rules.MODEL_MIN_FRAMES:
+                continue
+            miss = np.linalg.norm(X[t, f] - P[t, j], axis=1) - c[col]
+            z = float(np.sqrt(np.mean(miss ** 2)) / max(s[col], self.s0))
+            out.append((z, n))
+        return out
+
+
+def _off(js) -> bool:
+    """Off its marker: the median z of the judging mates beyond ``MODEL_OFF_Z``."""
+    return bool(js) and float(np.median([z for z, _ in js])) > rules.MODEL_OFF_Z
+
+
+def _fits(js) -> bool:
+    """Fits a marker: the median z within ``MODEL_FIT_Z``, none beyond ``MODEL_FAR_Z``, and
+    ``MODEL_EVIDENCE`` frames seen with the mates in all."""
+    return (bool(js) and float(np.median([z for z, _ in js])) <= rules.MODEL_FIT_Z
+            and max(z for z, _ in js) <= rules.MODEL_FAR_Z
+            and sum(n for _, n in js) >= rules.MODEL_EVIDENCE)
+
+
+def _takes(js) -> bool:
+    """A marker takes back an exchanged piece: it fits, or no mate judges it there."""
+    return not js or _fits(js)
+
+
+def _free(vis, groups, k, f, without=()) -> list:
+    """The fragments of marker ``k`` (other than ``without``) seen in a frame of ``f``."""
+    return [h for h in groups[k] if h not in without and (vis[:, h] & vis[:, f]).any()]
+
+
+def _model_check(X, groups, max_step) -> list:
+    """Step 12 (the module docstring) on the fragment ``groups``; returns new groups."""
+    vis = ~np.isnan(X[..., 0])
+    groups = [list(g) for g in groups]
+    span = _spans(vis, groups)
+    for _ in range(rules.MODEL_ROUNDS):
+        model = _Model(X, vis, groups)
+        changes = []
+        for a, g in enumerate(groups):
+            if len(g) < 2:
+                continue
+            for f in g:
+                home = model.judge(f, a)
+                off = _off(home)
+                weak = rules.MODEL_STRONGER and len(home) == 1 and _fits(home)
+                if not (off or weak):
+                    continue
+                change = _destination(model, vis, span, groups, f, a, off, max_step)
+                if change is not None:
+                    score = min(z for z, _ in home) if off else 0.0
+                    changes.append((score, change))
+        if not changes:
+            break
+        changes.sort(key=lambda c: -c[0])
+        groups = changes[0][1]
+    return groups
+
+
+def _destination(model, vis, span, groups, f, a, off, max_step):
+    """The new groups after fragment ``f`` of marker ``a`` moves (or is exchanged) to the one
+    marker that takes it, or None."""
+    X = model.X
+    found = []
+    for b in range(len(groups)):
+        if b == a:
+            continue
+        clash = _free(vis, groups, b, f)
+        js = model.judge(f, b, without=clash)
+        if off:
+            if not _fits(js):
+                continue
+        elif clash or len(js) < rules.MODEL_STRONG_MATES or not _fits(js):
+            continue
+        new_a = [h for h in groups[a] if h != f] + clash
+        new_b = [h for h in groups[b] if h not in clash] + [f]
+        if clash:
+            # an exchange: each piece coming back is off b and fits a without f
+            if not all(_off(model.judge(h, b)) and _takes(model.judge(h, a, without=(f,)))
+                       for h in clash):
+                continue
+            if any((vis[:, h1] & vis[:, h2]).any() for h1 in new_a for h2 in new_a
+                   if h1 < h2):
+                continue
+        if not (_paced(X, span, new_a, max_step) and _paced(X, span, new_b, max_step)):
+            continue
+        found.append((b, new_a, new_b))
+    if len(found) != 1:
+        return None
+    b, new_a, new_b = found[0]
+    out = [list(g) for g in groups]
+    out[a], out[b] = new_a, new_b
+    return [g for g in out if g]
