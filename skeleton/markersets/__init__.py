@@ -6,7 +6,8 @@ marker (occlusion), so one physical marker arrives as several fragments, each a 
 NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brien & Forsyth
 2005), steps 1-3 drop too-short fragments, measure pose-aligned distances between fragments
 that never share a frame and merge them by constrained single linkage; steps 4-11 repair
-what one minimum distance per gap decides wrong. One module per step; each module's
+what one minimum distance per gap decides wrong, and step 12 checks every piece once more
+against the rigid model (its marker's one-body mates). One module per step; each module's
 docstring gives its rule, the figures it was designed on and what it measured:
 
 - ``linkage`` (steps 1-3): dropping, pose-aligned distances, motion continuity, the
@@ -22,6 +23,8 @@ docstring gives its rule, the figures it was designed on and what it measured:
 - ``splits`` (step 7): two markers of a 2-marker segment left as three ids;
 - ``spheres`` (steps 8 and 11): the sphere each marker keeps about its joint in a
   neighbouring body's frame, its direction and its continuity, for exchanges and joins;
+- ``model`` (step 12): a piece off its marker's one-body mates (robust distance
+  statistics) moves or is exchanged to the one marker it fits (``_model_check``);
 - ``tracks``, ``judges``, ``continuity``, ``bodies``: what the steps share (tracks and
   their distance sds, the jump and misfit judges, run ends and junction misses, body
   frames and joint spheres); ``rules``: every rule's switch and threshold, one place
@@ -78,7 +81,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8, 9, 10 and 11 (the step
+    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8, 9, 10, 11 and 12 (the step
     modules; ``swap_margin``: the least gain in the rigidity cost for which fragments change
     marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
@@ -167,7 +170,7 @@ def _merge_again(X, n_min, max_distance_m, loose_distance_m, n_markers, samples,
 
 def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
              merge_again) -> MarkerSets:
-    """Steps 4-11 (the step modules) on the linkage's markers ``res``."""
+    """Steps 4-12 (the step modules) on the linkage's markers ``res``."""
     res = _with_groups(X, res, _repair_swaps(X, [list(g) for g in res.groups],
                                              min_frames, swap_margin, max_step=max_step))
     # a marker left as two ids beside a swap (the swap made them overlap) can merge now
@@ -208,7 +211,7 @@ def _repairs_from(X, groups, min_frames: int = 10, max_distance_m: float = 0.012
                   n_markers=None, samples: int = 12, neighbours: int = 3, max_passes: int = 4,
                   loose_distance_m: float = 0.1, swap_margin: float = 1.0,
                   continuity_m: float = 0.01, speed_gate=1.5) -> MarkerSets:
-    """Steps 4-11 of ``merge_fragments`` (its defaults) resumed from the linkage's fragment
+    """Steps 4-12 of ``merge_fragments`` (its defaults) resumed from the linkage's fragment
     ``groups`` (those entering step 4): what ``merge_fragments(X)`` returns when steps 1-3
     gave these groups. For screens of later steps (``benchmarks/screen_markersets.py``)."""
     X = np.asarray(X, np.float64)

@@ -40,15 +40,20 @@ from .tracks import _paced, _spans, _tracks
 
 def _robust(d: np.ndarray, min_frames: int) -> tuple[np.ndarray, np.ndarray]:
     """(median, 1.4826 x median absolute deviation) of each column of d (T, M), NaN where
-    a column has fewer than ``min_frames`` finite values."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(d, axis=0)
-        mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
-    few = np.isfinite(d).sum(0) < min_frames
-    med[few] = np.nan
+    a column has fewer than ``min_frames`` finite values (by sorting: NaN sorts last;
+    np.nanmedian is many times slower on these small arrays)."""
+    def med(a):
+        a = np.sort(a, axis=0)
+        n = np.isfinite(a).sum(0)
+        lo, hi = np.maximum((n - 1) // 2, 0), np.maximum(n // 2, 0)
+        cols = np.arange(a.shape[1])
+        return 0.5 * (a[lo, cols] + a[hi, cols]), n
+    m, n = med(d)
+    mad = 1.4826 * med(np.abs(d - m))[0]
+    few = n < min_frames
+    m[few] = np.nan
     mad[few] = np.nan
-    return med, mad
+    return m, mad
 
 
 class _Model:
@@ -84,7 +89,10 @@ class _Model:
         for h in self.groups[k]:
             if h != f and h not in without:
                 Pk[vis[:, h]] = X[vis[:, h], h]
-        others = [j for j in range(len(self.groups)) if j != k]
+        seen = (~np.isnan(P[frf, :, 0])).sum(0) >= rules.MODEL_MIN_FRAMES
+        others = [j for j in np.flatnonzero(seen) if j != k]
+        if not others:
+            return []
         d_rest = np.linalg.norm(P[own][:, others] - Pk[own][:, None], axis=2)
         c, s = _robust(d_rest, rules.MODEL_PAIR_FRAMES)
         body = np.isfinite(s) & (s <= rules.MODEL_BODY_SD * self.s0)
