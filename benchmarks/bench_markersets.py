@@ -1,5 +1,5 @@
 """Marker sets (skeleton/markersets/) on random simulated figures, with and without the
-swap repair (steps 4, 4b, 5 and 6), in the same run.
+repairs (steps 4-12), and without step 12 (the model check) alone, in the same run.
 
 Usage: python benchmarks/bench_markersets.py [first=0] [last=80] [n_frames=400]
 Figures k in [first, last), exactly as bench_skeleton_outputs.py's marker-set part: random
@@ -13,7 +13,8 @@ dropped. Since commit 70ca108 hw_sim's random_tree keeps a segment's markers
 built with a smaller ``min_marker_spacing_m`` (random_tree takes up to 400 draws per marker;
 with 60, figure 59 kept two markers 7.8 mm apart). Merge time: the
 sum over the figures, and its ratio to the merge without the repair (``repair_swaps=False``:
-steps 1-3 of skeleton/markersets/ only).
+steps 1-3 of skeleton/markersets/ only), and with to without step 12 (``rules.MODEL_CHECK``
+False).
 """
 from __future__ import annotations
 
@@ -26,10 +27,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hw_sim.articulated import animate, random_tree  # noqa: E402
-from skeleton.markersets import merge_fragments  # noqa: E402
+from skeleton.markersets import merge_fragments, rules  # noqa: E402
 from tests.skeleton._figures import fragment, marker_spacing  # noqa: E402
 
-VARIANTS = {"repair": {}, "no repair": {"repair_swaps": False}}
+# name: (merge_fragments keywords, skeleton.markersets.rules constants set for it)
+VARIANTS = {"repair": ({}, {}), "no step 12": ({}, {"MODEL_CHECK": False}),
+            "no repair": ({"repair_swaps": False}, {})}
 
 
 
@@ -41,10 +44,17 @@ def one_figure(k, T=400):
     X, owner = fragment(mo.markers + g.normal(0, 1e-3, mo.markers.shape), k,
                         n_gaps=(1, 4), gap_frames=(3, 40))
     r = {"k": k, "M": fig.n_markers, "F": X.shape[1], "spacing": marker_spacing(fig)}
-    for name, kw in VARIANTS.items():
-        t0 = time.perf_counter()
-        ms = merge_fragments(X, **kw)
-        t_merge = time.perf_counter() - t0
+    for name, (kw, consts) in VARIANTS.items():
+        kept = {c: getattr(rules, c) for c in consts}
+        for c, v in consts.items():
+            setattr(rules, c, v)
+        try:
+            t0 = time.perf_counter()
+            ms = merge_fragments(X, **kw)
+            t_merge = time.perf_counter() - t0
+        finally:
+            for c, v in kept.items():
+                setattr(rules, c, v)
         pure = all(len({owner[f] for f in grp}) == 1 for grp in ms.groups)
         one = sorted(owner[grp[0]] for grp in ms.groups) == list(range(fig.n_markers))
         r[name] = {"merged": pure and one, "pure": pure, "n": ms.n_markers, "t": t_merge}
@@ -72,7 +82,9 @@ def main(first=0, last=80, T=400):
                               for name in VARIANTS))
     t = {name: sum(r[name]["t"] for r in rows) for name in VARIANTS}
     print(f"merge time: repair {t['repair']:.1f} s, no repair {t['no repair']:.1f} s, "
-          f"ratio {t['repair'] / t['no repair']:.2f}; largest figure "
+          f"ratio {t['repair'] / t['no repair']:.2f}; without step 12 (MODEL_CHECK) "
+          f"{t['no step 12']:.1f} s, ratio with it {t['repair'] / t['no step 12']:.2f}; "
+          f"largest figure "
           f"({max(r['F'] for r in rows)} fragments) "
           f"{max(rows, key=lambda r: r['F'])['repair']['t']:.2f} s")
 
