@@ -24,7 +24,17 @@ Figures (held out at stop 62, wrong after steps 1-11): 14715, marker 24's last 1
 on marker 18 of another 2-marker segment, 31.7 x off its one mate there and fitting marker
 24's; 13925, the last pieces of marker 10 (2-marker segment) and marker 22 exchanged;
 12669, marker 7's first 14 frames on marker 1 (2-marker segment), fitting its mate (a
-sphere) and fitting marker 7's two mates seen then.
+sphere) and fitting marker 7's two mates seen then. Screens (stop 63,
+``benchmarks/screen_markersets.py FIGS OUT --cache ... --compare MODEL_CHECK=False``): held
+out, first runs 15000-15499 (full merges), 500/500 right, step 12 acting on none; from the
+step-4 cache, 14000-14999 right but for 14892 and 14980 (left below), acting on 14715 only,
+and 0-91, 92/92, acting on none; at 2 mm noise (``/tmp`` driver, figures 20000-20029, full
+merges) acting on none. On the 9 real recordings the merged groups are the same with and
+without it. Still wrong after it: 12175 (the first pieces of the two markers of a 2-marker
+segment and of its 2-marker child exchanged pairwise: each piece fits its swapped mate),
+14892 (two markers of a 3-marker segment 33 mm apart, 199 and 202 mm from the third,
+exchanged end pieces: no distance tells them) and 14980 (an 11-frame first piece no mate
+sees, left an id of its own).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
