@@ -1608,7 +1608,7 @@ def test_a_2_marker_segments_end_piece_is_judged_in_its_parents_borrowed_frame(m
 def test_model_check_moves_a_piece_off_every_mate_to_the_marker_it_fits(monkeypatch):
     """Held-out figure 14715 (first run at stop 62): the linkage and steps 4-11 left marker
     24's last 13 frames (a 2-marker segment) on marker 18 of another 2-marker segment, 31.7
-    x the pair's robust sd off marker 18's one mate and 1.0 x on marker 24's. Step 12
+    x the pair's robust sd off marker 18's one mate and 1.2 x on marker 24's. Step 12
     (``MODEL_CHECK``, ``model._model_check``) moves it to marker 24, the one marker free
     over those frames that it fits; without it the piece stays."""
     fig, _, ids = _right_then_off(monkeypatch, 14715, "MODEL_CHECK", False)
