@@ -22,8 +22,8 @@ within ``MODEL_FIT_Z`` and they see it for ``MODEL_EVIDENCE`` frames in all.
 One change per round, the piece furthest off first; at most ``MODEL_ROUNDS`` rounds.
 Figures (known wrong after steps 1-11 at stop 62; first run at stops 60-62): 14715,
 marker 24's last 13 frames on marker 18 of another 2-marker segment, 31.7 x off its one
-mate there and fitting marker 24's (1.2); 13925, the last pieces of marker 10 (2-marker segment) and marker 22 exchanged;
-12669, marker 7's first 14 frames on marker 1 (2-marker segment), fitting its mate (a
+mate there and fitting marker 24's (1.2); 13925, the last pieces of marker 10 (2-marker
+segment) and marker 22 exchanged; 12669, marker 7's first 14 frames on marker 1 (2-marker segment), fitting its mate (a
 sphere) and fitting marker 7's two mates seen then. Screens (stop 63,
 ``benchmarks/screen_markersets.py FIGS OUT --cache ... --compare MODEL_CHECK=False``): held
 out, first runs 15000-15499 (full merges), 500/500 right, step 12 acting on none; from the
