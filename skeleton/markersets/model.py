@@ -20,21 +20,22 @@ within ``MODEL_FIT_Z`` and they see it for ``MODEL_EVIDENCE`` frames in all.
   keeps one distance, a sphere a piece of another segment may cross.
 
 One change per round, the piece furthest off first; at most ``MODEL_ROUNDS`` rounds.
-Figures (known wrong after steps 1-11 at stop 62; first run at stops 60-62): 14715,
-marker 24's last 13 frames on marker 18 of another 2-marker segment, 31.7 x off its one
-mate there and fitting marker 24's (1.2); 13925, the last pieces of marker 10 (2-marker
-segment) and marker 22 exchanged; 12669, marker 7's first 14 frames on marker 1 (2-marker segment), fitting its mate (a
-sphere) and fitting marker 7's two mates seen then. Screens (stop 63,
-``benchmarks/screen_markersets.py FIGS OUT --cache ... --compare MODEL_CHECK=False``): held
-out, first runs 15000-15499 (full merges), 500/500 right, step 12 acting on none; from the
-step-4 cache, 14000-14999 right but for 14892 and 14980 (left below), acting on 14715 only,
-and 0-91, 92/92, acting on none; at 2 mm noise (``/tmp`` driver, figures 20000-20029, full
-merges) acting on none. On the 9 real recordings the merged groups are the same with and
-without it. Still wrong after it: 12175 (the first pieces of the two markers of a 2-marker
-segment and of its 2-marker child exchanged pairwise: each piece fits its swapped mate),
-14892 (two markers of a 3-marker segment 33 mm apart, 199 and 202 mm from the third,
-exchanged end pieces: no distance tells them) and 14980 (an 11-frame first piece no mate
-sees, left an id of its own).
+Figures (known wrong after steps 1-11 at stop 62; first run at stops 60-62): 14715, marker
+24's last 13 frames on marker 18 of another 2-marker segment, 31.7 x off its one mate there
+and fitting marker 24's (1.2); 13925, the last pieces of marker 10 (2-marker segment) and
+marker 22 exchanged; 13725, the late pieces of markers 6 and 12 (two 2-marker sibling
+segments) exchanged, in two rounds; 12669, marker 7's first 14 frames on marker 1 (2-marker
+segment), fitting its mate (a sphere) and fitting marker 7's two mates seen then. Screens
+(stop 63, ``benchmarks/screen_markersets.py FIGS OUT --cache ... --compare
+MODEL_CHECK=False``): held out, first runs 15000-15499 (full merges), 500/500 right, step
+12 acting on none; from the step-4 cache, 14000-14999 right but for 14892 and 14980 (left
+below), acting on 14715 only, and 0-91, 92/92, acting on none; at 2 mm noise (``/tmp``
+driver, figures 20000-20029, full merges) acting on none. On the 9 real recordings the
+merged groups are the same with and without it. Still wrong after it: 12175 (the first
+pieces of the two markers of a 2-marker segment and of its 2-marker child exchanged
+pairwise: each piece fits its swapped mate), 14892 (two markers of a 3-marker segment 33 mm
+apart, 199 and 202 mm from the third, exchanged end pieces: no distance tells them) and
+14980 (an 11-frame first piece no mate sees, left an id of its own).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
