@@ -27,7 +27,7 @@ marker 22 exchanged; 13725, the late pieces of markers 6 and 12 (two 2-marker si
 segments) exchanged, in two rounds; 12669, marker 7's first 14 frames on marker 1 (2-marker
 segment), fitting its mate (a sphere) and fitting marker 7's two mates seen then. Screens
 (stop 63, ``benchmarks/screen_markersets.py FIGS OUT --cache ... --compare
-MODEL_CHECK=False``): held out, first runs 15000-15499 (full merges), 500/500 right, step
+MODEL_CHECK=False``): held out, first runs 15000-15749 (full merges), 750/750 right, step
 12 acting on none; from the step-4 cache, 14000-14999 right but for 14892 and 14980 (left
 below), acting on 14715 only, and 0-91, 92/92, acting on none; at 2 mm noise (``/tmp``
 driver, figures 20000-20029, full merges) acting on none. On the 9 real recordings the
