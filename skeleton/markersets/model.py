@@ -89,17 +89,10 @@ class _Model:
         ``without``, over frames where none of those is seen."""
         X, vis, P = self.X, self.vis, self.P
         frf = vis[:, f]
-        own = np.zeros(X.shape[0], bool)
-        for h in self.groups[k]:
-            if h != f and h not in without:
-                own |= vis[:, h]
-        own &= ~frf
+        Pk = _tracks(X, [[h for h in self.groups[k] if h != f and h not in without]])[:, 0]
+        own = ~np.isnan(Pk[:, 0]) & ~frf
         if not own.any():
             return []
-        Pk = np.full((X.shape[0], 3), np.nan)
-        for h in self.groups[k]:
-            if h != f and h not in without:
-                Pk[vis[:, h]] = X[vis[:, h], h]
         seen = (~np.isnan(P[frf, :, 0])).sum(0) >= rules.MODEL_MIN_FRAMES
         others = [j for j in np.flatnonzero(seen) if j != k]
         if not others:
@@ -144,7 +137,7 @@ def _takes(js) -> bool:
     return not js or _fits(js)
 
 
-def _free(vis, groups, k, f, without=()) -> list:
+def _clash(vis, groups, k, f, without=()) -> list:
     """The fragments of marker ``k`` (other than ``without``) seen in a frame of ``f``."""
     return [h for h in groups[k] if h not in without and (vis[:, h] & vis[:, f]).any()]
 
@@ -185,7 +178,7 @@ def _destination(model, vis, span, groups, f, a, off, max_step):
     for b in range(len(groups)):
         if b == a:
             continue
-        clash = _free(vis, groups, b, f)
+        clash = _clash(vis, groups, b, f)
         js = model.judge(f, b, without=clash)
         if off:
             if not _fits(js):
