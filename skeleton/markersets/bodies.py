@@ -143,7 +143,7 @@ def _virtual_frames(P, frames, s0, joint_rms=rules.VIRTUAL_JOINT_RMS,
 
 
 def _pair_frames(P, one, frames, s0, joint_rms=None, min_lever=rules.VIRTUAL_MIN_LEVER_M,
-                 min_frames=50) -> tuple[dict, dict]:
+                 min_frames=50, every_lender=False) -> tuple[dict, dict]:
     """Frames of two-track bodies (``PAIR_FRAMES``, step 8): each pair of tracks moving as
     one body (``one``) that no body of ``frames`` (three or more tracks) holds, with its
     joint to the body it fits best as the third point: in that body's frame the two tracks
@@ -157,7 +157,10 @@ def _pair_frames(P, one, frames, s0, joint_rms=None, min_lever=rules.VIRTUAL_MIN
     (9 pairs); for the 5 pairs with no such body the best fitted at 1.24 (a sibling), 4.57,
     6.57, 8.44 and 11.58. At the first gate, ``VIRTUAL_JOINT_RMS`` (5), figure 7375's
     2-marker segment 12 borrowed the 4.57 joint from a body three joints away, and its
-    frame then exchanged two pieces wrongly (2.21 residual sds, just over the 2)."""
+    frame then exchanged two pieces wrongly (2.21 residual sds, just over the 2).
+    ``every_lender``: a frame per body that fits within the gate, keyed (i, j, *that body's
+    tracks), not the best one's only (step 11, ``SPHERE_JOINS_PAIRS``: figure 16029, where
+    the best lender is hidden over the piece to judge)."""
     joint_rms = rules.PAIR_JOINT_RMS if joint_rms is None else joint_rms
     out, lent = {}, {}
     held = {frozenset((x, y)) for B in frames for x in B for y in B if x != y}
@@ -165,7 +168,7 @@ def _pair_frames(P, one, frames, s0, joint_rms=None, min_lever=rules.VIRTUAL_MIN
         i, j = int(i), int(j)
         if frozenset((i, j)) in held:
             continue
-        best = None
+        fitting = []
         for A, (frA, RA, tA) in frames.items():
             if i in A or j in A:
                 continue
@@ -176,21 +179,21 @@ def _pair_frames(P, one, frames, s0, joint_rms=None, min_lever=rules.VIRTUAL_MIN
             Y = [np.einsum("bij,bj->bi", R, P[fr, m]) + t for m in (i, j)]
             u, res = _common_centre(Y)
             rms = float(np.sqrt(np.mean(np.concatenate(res) ** 2)))
-            if rms <= joint_rms * s0 and (best is None or rms < best[0]):
-                best = (rms, A, fr, R, t, u)
-        if best is None:
-            continue
-        _, A, fr, R, t, u = best
-        c = np.einsum("bji,bj->bi", R, u - t)          # the joint in the world
-        src = np.stack([P[fr, i], P[fr, j], c], 1)
-        d = src[:, 1] - src[:, 0]
-        lever = np.linalg.norm(np.cross(d, src[:, 2] - src[:, 0]), axis=1) / np.linalg.norm(
-            d, axis=1)
-        if not np.median(lever) >= min_lever:
-            continue
-        Rk, tk = _kabsch_batch(src, np.broadcast_to(src[:1], src.shape))
-        out[i, j] = (fr, Rk, tk)
-        lent[i, j] = A
+            if rms <= joint_rms * s0:
+                fitting.append((rms, A, fr, R, t, u))
+        fitting.sort(key=lambda c: c[0])
+        for _, A, fr, R, t, u in (fitting if every_lender else fitting[:1]):
+            c = np.einsum("bji,bj->bi", R, u - t)          # the joint in the world
+            src = np.stack([P[fr, i], P[fr, j], c], 1)
+            d = src[:, 1] - src[:, 0]
+            lever = np.linalg.norm(np.cross(d, src[:, 2] - src[:, 0]), axis=1) / (
+                np.linalg.norm(d, axis=1))
+            if not np.median(lever) >= min_lever:
+                continue
+            Rk, tk = _kabsch_batch(src, np.broadcast_to(src[:1], src.shape))
+            key = (i, j, *A) if every_lender else (i, j)
+            out[key] = (fr, Rk, tk)
+            lent[key] = A
     return out, lent
 
 

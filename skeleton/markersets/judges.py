@@ -74,10 +74,11 @@ def _jump_ss(X, vis, frags, Pq):
         n = sum(stats[f][0] for f in g)
         s = sum(stats[f][1] for f in g)
         return sum(stats[f][2] for f in g) - s ** 2 / np.maximum(n, 1)
+    ss.judges = lambda g: sum((stats[f][0] > 0).astype(int) for f in g) >= 2
     return ss
 
 
-def _jumps(X, vis, ga0, gb0, alts, Pq, margin, per_marker=False):
+def _jumps(X, vis, ga0, gb0, alts, Pq, margin, per_marker=False, seen_twice=False):
     """Step 4's jump costs of two markers' fragments (ga0, gb0) and of their alternatives
     ``alts``: (now, costs (len(alts),)), each the sum over both markers and the partners of
     ``_jump_ss``, over the partners only that sit at constant distances from the fragments
@@ -85,7 +86,10 @@ def _jumps(X, vis, ga0, gb0, alts, Pq, margin, per_marker=False):
     a partner across a joint drifts, and its fragments' means fit no two markers). With
     ``per_marker`` that is asked of each partner and each of the two markers apart: a
     partner of one marker's segment is across a joint from the other marker, where it
-    drifts, and still tells where the first marker's pieces belong (figure 9533)."""
+    drifts, and still tells where the first marker's pieces belong (figure 9533). With
+    ``seen_twice`` a partner fits an assignment only where it is seen with two or more
+    fragments of one of its markers (``JUMPS_SEEN_TWICE``): one it sees a single fragment
+    of in each marker fits there at no cost, whatever it is (figure 16029)."""
     ss = _jump_ss(X, vis, ga0 + gb0, Pq)
     if per_marker:
         now = np.stack([ss(ga0), ss(gb0)])                               # (2, Q)
@@ -95,14 +99,21 @@ def _jumps(X, vis, ga0, gb0, alts, Pq, margin, per_marker=False):
         return float(now[fits].sum()), costs[:, fits].sum(1)
     now = ss(ga0) + ss(gb0)
     costs = np.array([ss(ga) + ss(gb) for ga, gb in alts]).reshape(len(alts), -1)
-    fits = np.minimum(now, costs.min(0, initial=np.inf)) <= margin
+    if seen_twice:
+        judged = np.array([ss.judges(ga) | ss.judges(gb) for ga, gb in alts]
+                          ).reshape(costs.shape)
+        fits = np.minimum(np.where(ss.judges(ga0) | ss.judges(gb0), now, np.inf),
+                          np.where(judged, costs, np.inf).min(0, initial=np.inf)) <= margin
+    else:
+        fits = np.minimum(now, costs.min(0, initial=np.inf)) <= margin
     return float(now[fits].sum()), costs[:, fits].sum(1)
 
 
 def _best_by_jumps(X, vis, ga0, gb0, alts, Pq, margin):
     """The alternative (ga, gb) with the least jump cost (``_jumps``), if it is at least
     ``margin`` (m^2) below that of (ga0, gb0); else None."""
-    now, costs = _jumps(X, vis, ga0, gb0, alts, Pq, margin)
+    now, costs = _jumps(X, vis, ga0, gb0, alts, Pq, margin,
+                        seen_twice=rules.JUMPS_SEEN_TWICE)
     i = int(np.argmin(costs))
     return alts[i] if costs[i] <= now - margin else None
 

@@ -28,7 +28,11 @@ SPHERE_JOINS = True  # step 11: a marker left as two ids is joined where joint s
 SPHERE_FIT_Z = 3.0      # ... the piece fits a marker's sphere within this x the sphere's rms
 SPHERE_MISFIT_Z = 6.0   # ... and is off every other candidate's by at least this x its rms
 SPHERE_POINTS = 5       # ... on at least this many of the piece's frames in the body
+SPHERE_JOINS_PAIRS = True  # ... judging in two-track bodies' frames too (``_pair_frames``,
+#                            the lent body seen in part; ``VIRTUAL_FIT_RMS``), figure 14980
 
+JUMPS_SEEN_TWICE = True  # step 4's jumps: a partner fits only where it sees two fragments
+#                          of one marker (figure 16029)
 TURN_FALLBACK = True   # step 4: a pair moving as one body whose partners decide nothing turns
 
 KEPT_TRACK_VOTES = True    # step 4b: a marker without voters is judged by its kept track

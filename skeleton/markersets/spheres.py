@@ -148,6 +148,15 @@
    >= 400 - 117 - 27 = 256 frames, so two markers share >= 112 frames and the step finds
    nothing to join on a figure merged right: it can only change figures left wrong.
    With step 7b off it also joins figure 1371's 10-frame end piece, which step 7b joins.
+   Since stop 64 (``SPHERE_JOINS_PAIRS``) it judges in two-track bodies' frames too (step
+   8's ``_pair_frames``, the lending body's frame extended to frames where it shows three
+   or more of its four or more tracks, ``_partial_frames``), within ``VIRTUAL_FIT_RMS`` (2)
+   x s0 there. Figure 14980 (first run at stop 62): marker 33's first 11 frames (2-marker
+   hinge segment 11, its mate hidden) were left an id of their own; no body of three is one
+   joint away, but 2-marker segment 10 is, with its joint to 4-marker segment 3 (seen in
+   part over those 11 frames). There the piece lies on marker 33's sphere at 1.26 x its rms
+   and 10, 72 and 517 x off the other free markers' (marker 32's sphere fits at 1.87 x s0:
+   above 1.5, within 2).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -157,8 +166,8 @@ import numpy as np
 
 from . import rules
 from .bodies import (
-    _direction_spread, _one_body_frames, _pair_frames, _points_in, _sphere_fit,
-    _sphere_verdict, _sphere_z, _virtual_frames
+    _direction_spread, _one_body_frames, _pair_frames, _partial_frames, _points_in,
+    _sphere_fit, _sphere_verdict, _sphere_z, _virtual_frames
 )
 from .continuity import _continuity_cost
 from .judges import _jumps
@@ -187,7 +196,15 @@ def _join_by_spheres(X, groups, n_min, min_frames, max_step=np.inf, body_sd=1.5,
         S, s0 = _pair_sd(P, min_frames)
         if not s0 > 0:
             return groups
-        common, _, frames = _one_body_frames(P, S, s0, body_sd, body_frames)
+        common, one, frames = _one_body_frames(P, S, s0, body_sd, body_frames)
+        gate = dict.fromkeys(frames, fit_rms)
+        if rules.SPHERE_JOINS_PAIRS and frames:
+            # two-track bodies too, with the joint of each body that fits, seen in part
+            # (14980, 16029)
+            pairs, _ = _pair_frames(P, one, {**frames, **_partial_frames(P, frames)}, s0,
+                                    every_lender=True)
+            frames = {**frames, **pairs}
+            gate.update(dict.fromkeys(pairs, rules.VIRTUAL_FIT_RMS))
         M = len(groups)
         free = [[b for b in range(M) if b != a and not common[a, b]
                  and _paced(X, span, groups[a] + groups[b], max_step)] for a in range(M)]
@@ -211,7 +228,7 @@ def _join_by_spheres(X, groups, n_min, min_frames, max_step=np.inf, body_sd=1.5,
                 key = (body, b if len(points(body, b)) >= len(points(body, a)) else a)
                 if key not in spheres:
                     spheres[key] = _sphere_fit(yb)
-                if not spheres[key][2] <= fit_rms * s0:
+                if not spheres[key][2] <= gate[body] * s0:
                     continue                 # not a neighbour across one joint
                 zs.append(_sphere_z(ya, spheres[key]))
             return (min(zs), max(zs)) if zs else (np.nan, np.nan)

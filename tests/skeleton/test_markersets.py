@@ -1639,6 +1639,40 @@ def test_model_check_moves_a_piece_fitting_one_mate_where_it_fits_several(monkey
     assert [1, 7] in ids
 
 
+def test_sphere_joins_judge_in_a_two_marker_bodys_frame(monkeypatch):
+    """Figure 14980 (first run at stop 62, wrong until stop 64): marker 33's first 11
+    frames (2-marker hinge segment 11, its mate hidden then) were left an id of their own,
+    43 ids for 42 markers. No body of three or more tracks is one joint from segment 11;
+    its parent, 2-marker segment 10, is, with the joint it lends from 4-marker segment 3
+    (seen in part over those frames, ``_partial_frames``). In that frame the piece lies on
+    marker 33's sphere (1.3 x its rms) and off those of the other free markers (10, 72 and
+    517 x). ``SPHERE_JOINS_PAIRS`` lets step 11 judge there; without it the piece stays
+    alone (and step 12 cannot join ids)."""
+    fig, _, ids = _right_then_off(monkeypatch, 14980, "SPHERE_JOINS_PAIRS", False)
+    assert ids.count([33]) == 2 and len(ids) == fig.n_markers + 1
+    assert (fig.marker_segment == fig.marker_segment[33]).sum() == 2
+
+
+def test_step4_jumps_need_a_partner_seeing_two_fragments_of_a_marker(monkeypatch):
+    """Held-out figure 16029 (first run at stop 64): the linkage left marker 50's last 19
+    frames (2-marker segment 18) an id of their own. Step 4 paired that piece with marker 0
+    (3-marker root segment; rigid to it over their 19 common frames) and judged the pair
+    by the jumps of partners rigid to every fragment: markers of two child segments, which
+    drift between marker 0's two long fragments (52.6 and 25,274 mm^2 as merged) and see
+    one fragment of each marker in the exchange that split them (cost 0). Each "fitted" that
+    exchange, and marker 0's first fragment went to the piece. With ``JUMPS_SEEN_TWICE`` a
+    partner fits an assignment only where it sees two fragments of one marker; the piece
+    then stays alone and step 11 joins it in the frame of 2-marker segment 1 with its joint
+    to the root (``SPHERE_JOINS_PAIRS``, every lending body: the best-fitting one, a
+    sibling, is hidden over those frames), 1.1 x the sphere's rms on marker 50's, 78 and
+    131 x off the two other free markers'."""
+    fig, _, ids = _right_then_off(monkeypatch, 16029, "JUMPS_SEEN_TWICE", False)
+    assert [0, 50] in ids and [0] in ids
+    monkeypatch.undo()
+    _, _, ids = _right_then_off(monkeypatch, 16029, "SPHERE_JOINS_PAIRS", False)
+    assert ids.count([50]) == 2 and len(ids) == fig.n_markers + 1
+
+
 def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
     """``model._Model.judge`` on a rigid 3-marker body moving at random, each marker two
     fragments: the second piece of marker 0 judged at home fits (z about 1); replaced by a
