@@ -76,6 +76,15 @@ run at stop 18, 400-519 119 -> 119 of 120 and 520-639 115 -> 115 of 120 (failing
 short piece on a marker of its own segment, the class the rule is for). Merge time x1.35
 -> x1.36 of steps 1-3 alone. Still failing in 0-399: 157, 186, 221, 339, 379.
 
+A partner fits an assignment only where it sees two or more fragments of one of its
+markers (``JUMPS_SEEN_TWICE``, stop 64): one that sees a single fragment of each fits there
+at no cost, whatever the fragments are. Held-out figure 16029: marker 50's last 19 frames,
+left an id of their own, were rigid to marker 0 (root) over their 19 common frames; the
+partners rigid to every fragment were markers of two child segments of the root, drifting
+between marker 0's two long fragments (52.6 and 25,274 mm^2 as merged), and the exchange
+that split marker 0, giving its first fragment to the piece, left each seeing one fragment
+per marker: cost 0, so both "fitted" it and it was made.
+
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations
