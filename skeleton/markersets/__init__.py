@@ -7,8 +7,9 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
 2005), steps 1-3 drop too-short fragments, measure pose-aligned distances between fragments
 that never share a frame and merge them by constrained single linkage; steps 4-11 repair
 what one minimum distance per gap decides wrong, and step 12 checks every piece once more
-against the rigid model (its marker's one-body mates). One module per step; each module's
-docstring gives its rule, the figures it was designed on and what it measured:
+against the rigid model (its marker's one-body mates), step 12b against the joint spheres.
+One module per step; each module's docstring gives its rule, the figures it was designed
+on and what it measured:
 
 - ``linkage`` (steps 1-3): dropping, pose-aligned distances, motion continuity, the
   constrained linkage and its loose pass (``_merge_pass``);
@@ -21,8 +22,9 @@ docstring gives its rule, the figures it was designed on and what it measured:
 - ``joins`` (steps 5, 6, 7b, 9, 10): markers left as two ids joined by partners, by motion
   continuity, and by splitting a marker holding two others' pieces;
 - ``splits`` (step 7): two markers of a 2-marker segment left as three ids;
-- ``spheres`` (steps 8 and 11): the sphere each marker keeps about its joint in a
-  neighbouring body's frame, its direction and its continuity, for exchanges and joins;
+- ``spheres`` (steps 8, 11 and 12b): the sphere each marker keeps about its joint in a
+  neighbouring body's frame, its direction and its continuity, for exchanges and joins
+  (12b, after step 12: two pieces exchanged where the spheres decide, ``_sphere_check``);
 - ``model`` (step 12): a piece off its marker's one-body mates (robust distance
   statistics) moves or is exchanged to the one marker it fits (``_model_check``);
 - ``tracks``, ``judges``, ``continuity``, ``bodies``: what the steps share (tracks and
@@ -51,7 +53,7 @@ from .joins import _join_by_continuity, _join_by_partners, _split_joins
 from .linkage import _merge_pass
 from .misfits import _move_misfits
 from .model import _model_check
-from .spheres import _join_by_spheres, _sphere_exchanges
+from .spheres import _join_by_spheres, _sphere_check, _sphere_exchanges
 from .splits import _two_of_three
 from .swaps import _repair_swaps
 from .tracks import _first_seen, _pair_sd, _tracks
@@ -81,9 +83,9 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8, 9, 10, 11 and 12 (the step
-    modules; ``swap_margin``: the least gain in the rigidity cost for which fragments change
-    marker).
+    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8, 9, 10, 11, 12 and 12b (the
+    step modules; ``swap_margin``: the least gain in the rigidity cost for which fragments
+    change marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
     extrapolations across a gap for which a pair beyond ``max_distance_m`` still merges
     (``linkage``'s docstring, step 3).
@@ -170,7 +172,7 @@ def _merge_again(X, n_min, max_distance_m, loose_distance_m, n_markers, samples,
 
 def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
              merge_again) -> MarkerSets:
-    """Steps 4-12 (the step modules) on the linkage's markers ``res``."""
+    """Steps 4-12b (the step modules) on the linkage's markers ``res``."""
     res = _with_groups(X, res, _repair_swaps(X, [list(g) for g in res.groups],
                                              min_frames, swap_margin, max_step=max_step))
     # a marker left as two ids beside a swap (the swap made them overlap) can merge now
@@ -202,9 +204,27 @@ def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
             res = _with_groups(X, res, groups)
     if rules.MODEL_CHECK:
         groups = _model_check(X, [list(g) for g in res.groups], max_step)
+        seen = {_state(groups)}
+        fixed = set()
+        for _ in range(rules.MODEL_ROUNDS if rules.SPHERE_CHECK else 0):
+            # step 12b: an exchange the joint spheres decide, its pieces then kept by step 12
+            new = _sphere_check(X, groups, max_step, min_frames)
+            if new is None:
+                break
+            fixed |= {f for g, g0 in zip(new, groups) for f in set(g) - set(g0)}
+            new = _model_check(X, new, max_step, fixed)
+            if _state(new) in seen:
+                break
+            seen.add(_state(new))
+            groups = new
         if [sorted(g) for g in groups] != [sorted(g) for g in res.groups]:
             res = _with_groups(X, res, groups)
     return res
+
+
+def _state(groups) -> frozenset:
+    """The partition ``groups`` as a set of fragment sets (order-free)."""
+    return frozenset(frozenset(g) for g in groups)
 
 
 def _repairs_from(X, groups, min_frames: int = 10, max_distance_m: float = 0.012,

@@ -146,8 +146,9 @@ def _clash(vis, groups, k, f, without=()) -> list:
     return [h for h in groups[k] if h not in without and (vis[:, h] & vis[:, f]).any()]
 
 
-def _model_check(X, groups, max_step) -> list:
-    """Step 12 (the module docstring) on the fragment ``groups``; returns new groups."""
+def _model_check(X, groups, max_step, fixed=()) -> list:
+    """Step 12 (the module docstring) on the fragment ``groups``; returns new groups. The
+    fragments ``fixed`` stay on their markers (step 12b's exchanges, ``SPHERE_CHECK``)."""
     vis = ~np.isnan(X[..., 0])
     groups = [list(g) for g in groups]
     span = _spans(vis, groups)
@@ -158,12 +159,14 @@ def _model_check(X, groups, max_step) -> list:
             if len(g) < 2:
                 continue
             for f in g:
+                if f in fixed:
+                    continue
                 home = model.judge(f, a)
                 off = _off(home)
                 weak = rules.MODEL_STRONGER and len(home) == 1 and _fits(home)
                 if not (off or weak):
                     continue
-                change = _destination(model, vis, span, groups, f, a, off, max_step)
+                change = _destination(model, vis, span, groups, f, a, off, max_step, fixed)
                 if change is not None:
                     score = min(z for z, _ in home) if off else 0.0
                     changes.append((score, change))
@@ -174,7 +177,7 @@ def _model_check(X, groups, max_step) -> list:
     return groups
 
 
-def _destination(model, vis, span, groups, f, a, off, max_step):
+def _destination(model, vis, span, groups, f, a, off, max_step, fixed=()):
     """The new groups after fragment ``f`` of marker ``a`` moves (or is exchanged) to the one
     marker that takes it, or None."""
     X = model.X
@@ -183,6 +186,8 @@ def _destination(model, vis, span, groups, f, a, off, max_step):
         if b == a:
             continue
         clash = _clash(vis, groups, b, f)
+        if set(clash) & set(fixed):
+            continue
         js = model.judge(f, b, without=clash)
         if off:
             if not _fits(js):

@@ -1,4 +1,4 @@
-"""Steps 8 and 11 of the marker-set merge: joint spheres, directions and continuity.
+"""Steps 8, 11 and 12b of the marker-set merge: joint spheres, directions and continuity.
 
 8. joint spheres (``_sphere_exchanges``): a marker turns about its segment's joint with a
    neighbouring segment, so in that segment's frame it stays on a sphere about the joint.
@@ -157,6 +157,32 @@
    part over those 11 frames). There the piece lies on marker 33's sphere at 1.26 x its rms
    and 10, 72 and 517 x off the other free markers' (marker 32's sphere fits at 1.87 x s0:
    above 1.5, within 2).
+12b. sphere check (``_sphere_check``, ``SPHERE_CHECK``, stop 65): after step 12, a piece
+   (one fragment of a marker of two or more, at most a quarter of its points in a body's
+   frame) that lies >= ``SPHERE_MISFIT_Z`` x the sphere's rms off the joint sphere its
+   marker keeps without it (step 11's bodies, ``_partial_frames`` and two-track bodies
+   with every lending joint; fit within 1.5 x s0, ``VIRTUAL_FIT_RMS`` in a two-track
+   body's frame), while a fragment of another marker seen within its span (not moving as
+   one body with it) lies on that sphere within ``SPHERE_FIT_Z``, is exchanged with that
+   fragment where two or more bodies agree and none opposes: each body where either
+   marker keeps a sphere without its own piece must find its own piece off
+   (>= ``SPHERE_MISFIT_Z``) and the incoming one on (<= ``SPHERE_FIT_Z``) wherever it sees
+   them. Step 12 then runs again keeping the exchanged pieces where they are (its
+   ``fixed``); a round whose result step 12 has already given ends the check. Distances
+   cannot tell two 2-marker segments with about equal spacing apart: figure 12175 (wrong
+   since stop 60's code first met it) had the first pieces of markers 24 and 25 (segment
+   8) and of 45 and 46 (its 2-marker child) exchanged pairwise, the pairs 179.1 and 179.4
+   mm apart. In segment 6's frame (the parent, two markers, with the joint lent by segment
+   5, and again with segment 14's) and in sibling segment 14's, marker 46's piece on marker
+   25 lies 63-85 x the sphere's rms off marker 25's sphere and marker 25's own piece, on
+   marker 46, 1.7-2.5 x on it; no body finds marker 46's sphere. After that exchange step 12
+   exchanges the other pair by distance (it would otherwise have undone the first). The
+   need for two agreeing bodies and for the other marker's verdict come from figures 0-185
+   (``/tmp`` collector on their final groups, all right): 60 offered a candidate (a piece
+   off on one body, another marker's fragment on it); on two, all bodies keeping the
+   marker's sphere found the piece off and the fragment on: figure 30 (two bodies, where
+   the other marker's sphere finds the piece 44-75 x off it, an opposing verdict) and 113
+   (three, one at 5.9 x, above ``SPHERE_FIT_Z``).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -454,3 +480,119 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
         if gain > 0 and not veto and (best is None or gain > best[0]):
             best = (gain, a, b, na, nb)
     return best
+
+
+def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_frames=100,
+                  fit_rms=1.5, max_share=0.25) -> list | None:
+    """Step 12b (``SPHERE_CHECK``, module docstring): one exchange of two pieces that the
+    joint spheres decide, or None. In the frame of each body (step 8's bodies, extended
+    where four or more show three, ``_partial_frames``; two-track bodies with each lending
+    body's joint, ``_pair_frames(every_lender=True)``, within ``VIRTUAL_FIT_RMS``), a
+    marker ``a`` keeps a sphere about its joint without its piece ``f`` (Kasa fit of >= 50
+    points, rms <= ``fit_rms`` x s0; f at most ``max_share`` of a's points there, >=
+    ``SPHERE_POINTS``). Where f lies >= ``SPHERE_MISFIT_Z`` x that rms off it and a
+    fragment ``h`` of another marker ``b`` (not moving as one body with a), seen within
+    f's span, lies on it within ``SPHERE_FIT_Z``, the exchange of f and h is judged on
+    every body: where a's sphere without f fits, it agrees when f is off and h on it, and
+    opposes when either is not; where b's sphere without h fits, it agrees when f is on it
+    and h off, and opposes otherwise. Made where two or more bodies agree and none
+    opposes, the result overlap-free and paced; the piece furthest off first."""
+    vis = ~np.isnan(X[..., 0])
+    P = _tracks(X, groups)
+    S, s0 = _pair_sd(P, min_frames)
+    if not s0 > 0:
+        return None
+    _, one, full = _one_body_frames(P, S, s0, body_sd, body_frames)
+    if not full:
+        return None
+    frames = {**full, **_partial_frames(P, full)}
+    gate = dict.fromkeys(frames, fit_rms)
+    pf, lent = _pair_frames(P, one, frames, s0, every_lender=True)
+    gate.update(dict.fromkeys(pf, rules.VIRTUAL_FIT_RMS))
+    frames = {**frames, **pf}
+    span = _spans(vis, groups)
+    points = _points_in(frames, X)        # (body, fragment) -> its points in the body's frame
+    spheres = {}
+
+    def outside(body, m):
+        return m in body or m in lent.get(body, ())
+
+    def sphere(body, m, f):
+        """Marker m's sphere in body without its fragment f, or None (too few points or
+        not a neighbour across one joint)."""
+        if (body, m, f) not in spheres:
+            rest = [points(body, h) for h in groups[m] if h != f]
+            s = None
+            if sum(map(len, rest)) >= 50:
+                s = _sphere_fit(np.concatenate(rest))
+                if not s[2] <= gate[body] * s0:
+                    s = None
+            spheres[body, m, f] = s
+        return spheres[body, m, f]
+
+    def z(body, f, s):
+        y = points(body, f)
+        return _sphere_z(y, s) if len(y) >= rules.SPHERE_POINTS else np.nan
+
+    found = {}
+    for a, g in enumerate(groups):
+        if len(g) < 2:
+            continue
+        for body in frames:
+            if outside(body, a):
+                continue
+            n = sum(len(points(body, f)) for f in g)
+            for f in g:
+                if not rules.SPHERE_POINTS <= len(points(body, f)) <= max_share * n:
+                    continue
+                s = sphere(body, a, f)
+                if s is None or not z(body, f, s) >= rules.SPHERE_MISFIT_Z:
+                    continue
+                lo, hi = span[f]
+                for b, gb in enumerate(groups):
+                    if b == a or one[a, b] or outside(body, b):
+                        continue
+                    for h in gb:
+                        if (span[h][1] >= lo and span[h][0] <= hi
+                                and z(body, h, s) <= rules.SPHERE_FIT_Z):
+                            found[a, f, b, h] = max(found.get((a, f, b, h), 0.0),
+                                                    z(body, f, s))
+    best = None
+    for (a, f, b, h), score in sorted(found.items(), key=lambda c: -c[1]):
+        agree, oppose = 0, False
+        for body in frames:
+            if outside(body, a) or outside(body, b):
+                continue
+            for m, own, new in ((a, f, h), (b, h, f)):
+                s = sphere(body, m, own)
+                if s is None:
+                    continue
+                zo, zn = z(body, own, s), z(body, new, s)
+                if np.isnan(zo) and np.isnan(zn):
+                    continue
+                # its own piece off its sphere, the other's on it
+                ok = ((np.isnan(zo) or zo >= rules.SPHERE_MISFIT_Z)
+                      and (np.isnan(zn) or zn <= rules.SPHERE_FIT_Z))
+                if not ok:
+                    oppose = True
+                    break
+                agree += 1
+            if oppose:
+                break
+        if oppose or agree < 2:
+            continue
+        new_a = [x for x in groups[a] if x != f] + [h]
+        new_b = [x for x in groups[b] if x != h] + [f]
+        if any((vis[:, h] & vis[:, x]).any() for x in new_a if x != h) or any(
+                (vis[:, f] & vis[:, x]).any() for x in new_b if x != f):
+            continue
+        if not (_paced(X, span, new_a, max_step) and _paced(X, span, new_b, max_step)):
+            continue
+        best = (a, b, new_a, new_b)
+        break
+    if best is None:
+        return None
+    a, b, new_a, new_b = best
+    out = [list(g) for g in groups]
+    out[a], out[b] = new_a, new_b
+    return out

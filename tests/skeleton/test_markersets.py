@@ -1675,6 +1675,23 @@ def test_step4_jumps_need_a_partner_seeing_two_fragments_of_a_marker(monkeypatch
     assert ids.count([50]) == 2 and len(ids) == fig.n_markers + 1
 
 
+def test_sphere_check_exchanges_what_the_joint_spheres_decide(monkeypatch):
+    """Figure 12175 (wrong since stop 60's code first met it): the first pieces of markers
+    24 and 25 (2-marker segment 8) and of 45 and 46 (its 2-marker child 15) ended up
+    exchanged pairwise (step 4b made the first move). The two pairs are 179.1 and 179.4 mm
+    apart, so every distance fits either way and step 12 keeps them. In three frames (the
+    parent, 2-marker segment 6, with the joint lent by segment 5 and again with the one lent
+    by segment 14; sibling segment 14), marker 46's 24-33-frame piece lies 63-85 x the
+    sphere's rms off marker 25's joint sphere and marker 25's own piece, on another id,
+    1.7-2.5 x on it; no body finds otherwise. Step 12b (``SPHERE_CHECK``,
+    ``spheres._sphere_check``) exchanges those two pieces and step 12, keeping them, then
+    exchanges the other pair by distance; without it all four markers stay mixed."""
+    fig, _, ids = _right_then_off(monkeypatch, 12175, "SPHERE_CHECK", False)
+    assert [25, 46] in ids and [24, 45] in ids
+    seg = fig.marker_segment
+    assert seg[24] == seg[25] != seg[45] == seg[46]
+
+
 def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
     """``model._Model.judge`` on a rigid 3-marker body moving at random, each marker two
     fragments: the second piece of marker 0 judged at home fits (z about 1); replaced by a
