@@ -93,6 +93,8 @@ STEP8_JUMPS = True  # step 8 makes no exchange that step 4's jump test would und
 PAIR_FRAMES = True  # step 8: last, spheres in a two-track body's frame with its joint to a
 #                     body of three or more as the third point (figure 12020)
 PAIR_JOINT_RMS = 2.0   # ... that joint fitting within this x s0 (7375: 4.57, three joints off)
+PAIR_EVERY_LENDER = True  # ... a frame per body whose joint fits, not the best one's only
+PAIR_OVER_JUMPS = True    # ... also judging exchanges step 4's jumps would undo (14892)
 AGREEING_SPHERES = True  # step 8: last, an exchange that two or more bodies across one
 #                          joint prefer and none opposes, where no sphere decides (10034)
 AGREEING_SPHERES_GAIN = 10.0   # ... each of two by at least this drop in the residual sum of

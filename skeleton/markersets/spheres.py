@@ -130,6 +130,18 @@
    markers) joined to marker 20, its partner, hidden then; continuity gained 1.81, under
    its margin; in the frame of the parent's two markers and their joint with the
    grandparent the piece sat 32 residual sds off as merged, 1.3 exchanged (fit 1.42 x s0).
+   Since stop 65 the two-track bodies take a frame per lending body whose joint fits
+   (``PAIR_EVERY_LENDER``; lenders seen in part too, ``_partial_frames``, as in step 11),
+   and they also judge the alternatives step 4's jump test would undo, which nothing else
+   in step 8 may make (``PAIR_OVER_JUMPS``). Figure 14892 (first run at stop 62): step 4
+   exchanged the end pieces of markers 10 and 11 (16 and 25 frames; 3-marker segment 3,
+   the two 33 mm apart and 199 and 202 mm from the third). Of the partners rigid to every
+   fragment the third marker fits neither assignment within the jumps' bound (193.9 mm^2
+   as merged, 21.9 exchanged, bound 21.2), and a child segment's marker 50 mm from its
+   joint puts 1.8 against 196.5, so ``STEP8_JUMPS`` kept the exchange. The best lender of
+   parent segment 1 (two markers) is segment 3 itself, which holds the two; with the
+   joint the root lends (3 of its 4 markers seen over the pieces) the pieces sit 3.6
+   residual sds off as merged and 0.8 exchanged (gain 689, the fit 0.93 x s0).
 11. sphere joins (``_join_by_spheres``, ``SPHERE_JOINS``): where the steps above still end
    with more markers than the bound, a short piece may have no continuation that motion
    or pose alignment can judge (figure 8203, held out at stop 51: marker 21's first 11
@@ -310,7 +322,8 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
     how their direction stays within a joint's range in that frame
     (``direction_margin``). None that step 4's jump test would undo (``STEP8_JUMPS``:
     raising ``_jumps`` on the tracks rigid to every fragment of both markers by
-    ``jump_margin`` x s0 squared). Returns the groups and whether any changed."""
+    ``jump_margin`` x s0 squared), unless a two-track body's frame decides it
+    (``PAIR_OVER_JUMPS``). Returns the groups and whether any changed."""
     vis = ~np.isnan(X[..., 0])
     groups = [list(g) for g in groups]
     P = _tracks(X, groups)
@@ -350,8 +363,11 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
             smooth_now = None               # the current assignment's continuity cost
             for na, nb in _cross_alternatives(span, ga, gb):
                 key = frozenset((frozenset(na), frozenset(nb)))
-                if key in done or key in undone or not (_paced(X, span, na, max_step)
-                                       and _paced(X, span, nb, max_step)):
+                # one step 4's jumps would undo: only a two-track body may make it
+                late = key in undone
+                if key in done or (late and not (rules.PAIR_OVER_JUMPS and rules.PAIR_FRAMES)
+                                   ) or not (_paced(X, span, na, max_step)
+                                             and _paced(X, span, nb, max_step)):
                     continue
                 done.add(key)
                 moved = (set(ga) - set(na)) | (set(gb) - set(nb))
@@ -390,10 +406,12 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                     if j[1]:
                         gain = max(gain, j[0])
                     veto = veto or j[2]
-                if gain > 0 and not veto and (best is None or gain > best[0]):
+                if gain > 0 and not veto and not late and (best is None or gain > best[0]):
                     best = (gain, a, b, na, nb)
                 if rules.PAIR_FRAMES and not veto:
                     pending.append((a, b, na, nb, moved))
+                if late:
+                    continue
                 if rules.AGREEING_SPHERES and not veto:
                     agree = _spheres_agree(gains)
                     if agree is not None and (agreed is None or agree > agreed[0]):
@@ -450,7 +468,8 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
     """Last in step 8 (``PAIR_FRAMES``): of the alternatives ``pending`` (a, b, na, nb,
     moved) that no body vetoed, the one with the largest gain on which the spheres in a
     two-track body's frame (``_pair_frames``: its joint to a body of three or more tracks
-    as the third point; neither a nor b in it or in the body lent) decide as step 8's
+    as the third point, one frame per such body with ``PAIR_EVERY_LENDER``, else the
+    best-fitting one's; neither a nor b in it or in the body lent) decide as step 8's
     bodies do (the moved pieces >= ``min_misfit`` residual sds off as merged and under half
     that exchanged, within ``VIRTUAL_FIT_RMS`` x s0 rms), none finding the reverse; else
     None. Figure 12020 (held out at stop 60): marker 21's first 23 frames, a 2-marker leaf
@@ -459,7 +478,12 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
     of the parent's two markers and its joint with the grandparent (three markers) the
     piece sits 32.2 residual sds off as merged and 1.32 exchanged (the fit at 1.42 x s0):
     the two markers are 253 and 361 mm from their joint."""
-    pf, lent = _pair_frames(P, one, frames, s0)
+    if rules.PAIR_EVERY_LENDER:
+        # a frame per lending body, seen in part too (as step 11's; 14892)
+        pf, lent = _pair_frames(P, one, {**frames, **_partial_frames(P, frames)}, s0,
+                                every_lender=True)
+    else:
+        pf, lent = _pair_frames(P, one, frames, s0)
     if not pf:
         return None
     points = _points_in(pf, X)

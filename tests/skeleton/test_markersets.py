@@ -1692,6 +1692,28 @@ def test_sphere_check_exchanges_what_the_joint_spheres_decide(monkeypatch):
     assert seg[24] == seg[25] != seg[45] == seg[46]
 
 
+def test_pair_frames_judge_with_every_lender_over_the_jumps(monkeypatch):
+    """Figure 14892 (wrong since its first run at stop 62): step 4's jumps gave marker
+    11's 16-frame end piece to marker 10 and marker 10's 25-frame end piece to marker 11
+    (3-marker segment 3, the two 33 mm apart, 199 and 202 mm from marker 9). Of the two
+    partners rigid to every fragment, marker 9 fits neither assignment within the jumps'
+    bound (193.9 mm^2 as merged, 21.9 exchanged, bound 21.2) and marker 21 (a child
+    segment's, 50 mm from its joint, 2.2 and 1.4 x s0 from the two) puts 1.8 against
+    196.5, so step 8's jump veto (``STEP8_JUMPS``) kept the exchange. In the frame of
+    2-marker parent segment 1 with the joint the root lends (seen in part over those
+    frames, 3 of its 4 markers) the two pieces sit 3.6 residual sds off as merged and 0.8
+    exchanged. The best-fitting lender is segment 3 itself, which holds the two markers:
+    step 8's two-track bodies take every lender (``PAIR_EVERY_LENDER``, lenders seen in part
+    too) and judge exchanges the jumps would undo (``PAIR_OVER_JUMPS``). Without either the
+    end pieces stay exchanged."""
+    fig, _, ids = _right_then_off(monkeypatch, 14892, "PAIR_OVER_JUMPS", False)
+    assert ids.count([10, 11]) == 2
+    assert fig.marker_segment[10] == fig.marker_segment[11]
+    monkeypatch.undo()
+    _, _, ids = _right_then_off(monkeypatch, 14892, "PAIR_EVERY_LENDER", False)
+    assert ids.count([10, 11]) == 2
+
+
 def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
     """``model._Model.judge`` on a rigid 3-marker body moving at random, each marker two
     fragments: the second piece of marker 0 judged at home fits (z about 1); replaced by a
