@@ -1336,8 +1336,10 @@ def test_a_misfit_is_exchanged_onto_a_marker_where_nothing_judges_it(monkeypatch
     0.25), but marker 46's partner 45 is not seen with marker 46's piece, so no judge
     placed that piece on marker 46 and step 4c's exchange was refused. A misfit may now go
     where no track judges it when a piece judged to fit comes back in its place
-    (``EXCHANGE_UNJUDGED``)."""
+    (``EXCHANGE_UNJUDGED``). Step 12b (``SPHERE_CHECK``, stop 65) repairs that failure too,
+    so it is set up with step 12b off as well."""
     _, _, ids = _right_then_off(monkeypatch, 4251, "EXCHANGE_UNJUDGED", False,
+                                failure_also={"SPHERE_CHECK": False},
                                 ORDER_SD_WEIGHT=OLD_ORDER_SD_WEIGHT)
     assert [13, 46] in ids
 
