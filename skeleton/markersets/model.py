@@ -34,12 +34,15 @@ driver, figures 20000-20029, full merges) acting on none. On the 9 real recordin
 merged groups are the same with and without it. Still wrong after it: 12175 (the first
 pieces of the two markers of a 2-marker segment and of its 2-marker child exchanged
 pairwise: each piece fits its swapped mate; step 4b made the first move, the two pairs'
-distances being 179.1 and 179.4 mm), 14892 (two markers of a 3-marker segment 33 mm
+distances being 179.1 and 179.4 mm; since stop 65 step 12b exchanges one pair on the
+joint spheres, ``spheres._sphere_check``, and this step, keeping those pieces
+(``fixed``), the other), 14892 (two markers of a 3-marker segment 33 mm
 apart, 199 and 202 mm from the third, exchanged end pieces: no distance tells them; step
 4's jumps made the exchange on a child segment's marker 50 mm from the joint, 1.55 and
 2.19 x s0 from one body with the two, while the third marker missed the jumps' bound by
-21.9 to 21.2 mm^2) and 14980 (an 11-frame first piece no mate sees, left an id of its own;
-since stop 64 step 11 joins it, ``SPHERE_JOINS_PAIRS``).
+21.9 to 21.2 mm^2; since stop 65 step 8's two-track bodies exchange them back,
+``PAIR_EVERY_LENDER`` and ``PAIR_OVER_JUMPS``) and 14980 (an 11-frame first piece no mate
+sees, left an id of its own; since stop 64 step 11 joins it, ``SPHERE_JOINS_PAIRS``).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
