@@ -11,9 +11,9 @@ its step-4 groups appended. The cache holds for as long as steps 1-3, ``hw_sim``
 builder are unchanged; ``--check`` merges cached figures in full too and reports any
 difference (a stale cache).
 
-``benchmarks/cache/markersets_step4.jsonl.gz`` (stop 64, steps 1-3 unchanged since e80e2f2)
-holds figures 0-1737, 2146-3573, 3880-5917, 6400-7793, 9160-9185, 9521-16564 and others
-named in the tests and the step modules' docstrings (13,686).
+``benchmarks/cache/markersets_step4.jsonl.gz`` (stop 65, steps 1-3 unchanged since e80e2f2)
+holds figures 0-1737, 2146-3573, 3880-5917, 6400-7793, 9160-9185, 9521-17564 and others
+named in the tests and the step modules' docstrings (14,686).
 
 Usage: python benchmarks/screen_markersets.py FIGURES OUT [--cache FILE] [--check]
        [--set NAME=VALUE ...] [--compare NAME=VALUE ...]
