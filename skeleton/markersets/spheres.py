@@ -215,6 +215,21 @@ from .tracks import (
 )
 
 
+def _judging_frames(P, one, full, s0, fit_rms, partial=True) -> tuple:
+    """(frames, gate, lent): the body frames that steps 11 and 12b judge spheres in, the fit
+    gate of each (x s0), and the bodies lent to the two-track ones. Step 8's bodies
+    (``full``, ``_one_body_frames``), with ``partial`` extended where four or more tracks
+    show three (``_partial_frames``), gated at ``fit_rms``; and two-track bodies with the
+    joint of each body that fits, those seen in part too as lenders
+    (``_pair_frames(every_lender=True)``), gated at ``VIRTUAL_FIT_RMS``."""
+    seen_in_part = {**full, **_partial_frames(P, full)}
+    frames = seen_in_part if partial else dict(full)
+    gate = dict.fromkeys(frames, fit_rms)
+    pairs, lent = _pair_frames(P, one, seen_in_part, s0, every_lender=True)
+    gate.update(dict.fromkeys(pairs, rules.VIRTUAL_FIT_RMS))
+    return {**frames, **pairs}, gate, lent
+
+
 def _join_by_spheres(X, groups, n_min, min_frames, max_step=np.inf, body_sd=1.5,
                      body_frames=100, fit_rms=1.5) -> list:
     """Step 11 (module docstring): while there are more markers than ``n_min``, two
@@ -239,10 +254,7 @@ def _join_by_spheres(X, groups, n_min, min_frames, max_step=np.inf, body_sd=1.5,
         if rules.SPHERE_JOINS_PAIRS and frames:
             # two-track bodies too, with the joint of each body that fits, seen in part
             # (14980, 16029)
-            pairs, _ = _pair_frames(P, one, {**frames, **_partial_frames(P, frames)}, s0,
-                                    every_lender=True)
-            frames = {**frames, **pairs}
-            gate.update(dict.fromkeys(pairs, rules.VIRTUAL_FIT_RMS))
+            frames, gate, _ = _judging_frames(P, one, frames, s0, fit_rms, partial=False)
         M = len(groups)
         free = [[b for b in range(M) if b != a and not common[a, b]
                  and _paced(X, span, groups[a] + groups[b], max_step)] for a in range(M)]
@@ -529,11 +541,7 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
     _, one, full = _one_body_frames(P, S, s0, body_sd, body_frames)
     if not full:
         return None
-    frames = {**full, **_partial_frames(P, full)}
-    gate = dict.fromkeys(frames, fit_rms)
-    pf, lent = _pair_frames(P, one, frames, s0, every_lender=True)
-    gate.update(dict.fromkeys(pf, rules.VIRTUAL_FIT_RMS))
-    frames = {**frames, **pf}
+    frames, gate, lent = _judging_frames(P, one, full, s0, fit_rms)
     span = _spans(vis, groups)
     points = _points_in(frames, X)        # (body, fragment) -> its points in the body's frame
     spheres = {}
