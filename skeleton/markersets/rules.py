@@ -95,6 +95,8 @@ PAIR_FRAMES = True  # step 8: last, spheres in a two-track body's frame with its
 PAIR_JOINT_RMS = 2.0   # ... that joint fitting within this x s0 (7375: 4.57, three joints off)
 PAIR_EVERY_LENDER = True  # ... a frame per body whose joint fits, not the best one's only
 PAIR_OVER_JUMPS = True    # ... also judging exchanges step 4's jumps would undo (14892)
+PAIR_FIT_RMS = 2.5   # ... judging within this x s0 rms, not VIRTUAL_FIT_RMS (17442: 2.13;
+#                      true neighbours in these frames: 74 % <= 2, 83 % <= 2.5)
 AGREEING_SPHERES = True  # step 8: last, an exchange that two or more bodies across one
 #                          joint prefer and none opposes, where no sphere decides (10034)
 AGREEING_SPHERES_GAIN = 10.0   # ... each of two by at least this drop in the residual sum of

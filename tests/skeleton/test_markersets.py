@@ -1716,6 +1716,20 @@ def test_pair_frames_judge_with_every_lender_over_the_jumps(monkeypatch):
     assert ids.count([10, 11]) == 2
 
 
+def test_pair_frames_judge_within_their_own_fit_gate(monkeypatch):
+    """Held-out figure 17442 (first run at stop 65): marker 35's first 19 frames (2-marker
+    segment 13, under 2-marker segment 6) were merged onto marker 34, hidden then. Of every
+    frame step 8 judges the move in, one is a neighbour across one joint: segment 6's two
+    markers with the joint segment 1 lends. There the piece sits 5.13 residual sds off as
+    merged and 1.03 moved (gain 1269.5), but the better fit is 2.13 x s0, past the 2.0 that
+    steps 8, 11 and 12b share for two-track frames; the next frame fits at 10.2 x s0. Step 8's
+    two-track bodies judge within ``PAIR_FIT_RMS`` (2.5); at 2.0 the piece stays on marker
+    34."""
+    fig, _, ids = _right_then_off(monkeypatch, 17442, "PAIR_FIT_RMS", 2.0)
+    assert [34, 35] in ids and [35] in ids
+    assert fig.marker_segment[34] == fig.marker_segment[35]
+
+
 def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
     """``model._Model.judge`` on a rigid 3-marker body moving at random, each marker two
     fragments: the second piece of marker 0 judged at home fits (z about 1); replaced by a
