@@ -15,6 +15,12 @@ within ``MODEL_FIT_Z`` and they see it for ``MODEL_EVIDENCE`` frames in all.
 - An off piece moves to the one marker, free over its frames (and paced: step 3's speed
   gate), that it fits; where no marker is free, to the one marker it fits whose pieces over
   its frames are off there and fit its own marker (an exchange).
+- Where such an exchange fails only because the one piece coming back does not fit the
+  off piece's marker, three pieces may move round three markers (``MODEL_ROTATIONS``, stop
+  66, ``_rotations``): that piece goes to the marker it fits without that marker's one
+  piece over its frames, and that piece, not fitting there, to the first marker, which
+  takes it. Held-out figure 17802: the first pieces of markers 6, 22 and 42 sat on 22, 42
+  and 6 (a three-cycle: every exchange of two leaves one piece where it misses).
 - A piece that fits its marker on one mate only moves to the one free marker it fits on
   ``MODEL_STRONG_MATES`` or more (``MODEL_STRONGER``): a marker of a 2-marker segment
   keeps one distance, a sphere a piece of another segment may cross.
@@ -203,16 +209,54 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=()):
             # an exchange: each piece coming back is off b and fits a without f
             if not all(_off(model.judge(h, b)) and _takes(model.judge(h, a, without=(f,)))
                        for h in clash):
+                if rules.MODEL_ROTATIONS and off and len(clash) == 1:
+                    found += _rotations(model, vis, span, groups, f, a, b, clash[0],
+                                        max_step, fixed)
                 continue
             if any((vis[:, h1] & vis[:, h2]).any() for h1 in new_a for h2 in new_a
                    if h1 < h2):
                 continue
         if not (_paced(X, span, new_a, max_step) and _paced(X, span, new_b, max_step)):
             continue
-        found.append((b, new_a, new_b))
+        found.append({a: new_a, b: new_b})
     if len(found) != 1:
         return None
-    b, new_a, new_b = found[0]
     out = [list(g) for g in groups]
-    out[a], out[b] = new_a, new_b
+    for m, g in found[0].items():
+        out[m] = g
     return [g for g in out if g]
+
+
+def _rotations(model, vis, span, groups, f, a, b, h, max_step, fixed=()) -> list:
+    """Three pieces moved round three markers (``MODEL_ROTATIONS``): ``f``, off its marker
+    ``a``, fits ``b``, whose piece ``h`` over f's frames is off ``b`` but not taken by
+    ``a``; h goes to the marker ``c`` it fits without c's one piece ``r`` over h's frames,
+    and r, not fitting c, to ``a``, which takes it without f. Each such rotation, overlap-free
+    and paced, as {marker: its new fragments}. Held-out figure 17802 (first run at stop 66):
+    the first pieces of markers 6, 22 and 42 sat on 22, 42 and 6; marker 42's piece lies
+    145.6 x off marker 6's one mate and fits marker 42's two (0.8, 0.9), marker 42's other
+    id holds marker 22's piece (27.1 and 8.4 x off), which fits marker 22's mate (1.0), and
+    marker 6's piece on marker 22 misses its mate by 2.7 and fits marker 6's (1.0); no
+    exchange of two moves every piece where it fits."""
+    if h in fixed or not _off(model.judge(h, b)):
+        return []
+    out = []
+    for c in range(len(groups)):
+        if c in (a, b):
+            continue
+        clash = _clash(vis, groups, c, h)
+        if len(clash) != 1 or clash[0] in fixed:
+            continue
+        r = clash[0]
+        if (not _fits(model.judge(h, c, without=clash)) or _fits(model.judge(r, c))
+                or not _takes(model.judge(r, a, without=(f,)))):
+            continue
+        new = {a: [x for x in groups[a] if x != f] + [r],
+               b: [x for x in groups[b] if x != h] + [f],
+               c: [x for x in groups[c] if x != r] + [h]}
+        if any((vis[:, x] & vis[:, y]).any() for g in new.values() for x in g for y in g
+               if x < y):
+            continue
+        if all(_paced(model.X, span, g, max_step) for g in new.values()):
+            out.append(new)
+    return out

@@ -117,5 +117,6 @@ MODEL_EVIDENCE = 10     # ... seen by them for this many frames in all
 MODEL_STRONGER = True   # ... a piece fitting one mate moves where it fits several (12669)
 MODEL_STRONG_MATES = 2  # ... that many
 MODEL_ROUNDS = 20       # ... one change a round
+MODEL_ROTATIONS = True  # ... three pieces moved round three markers where no exchange fits (17802)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then
 #                         step 12 again (``spheres._sphere_check``; figure 12175)

@@ -1730,6 +1730,20 @@ def test_pair_frames_judge_within_their_own_fit_gate(monkeypatch):
     assert fig.marker_segment[34] == fig.marker_segment[35]
 
 
+def test_model_check_moves_three_pieces_round_three_markers(monkeypatch):
+    """Held-out figure 17802 (first run at stop 66): the first pieces of markers 6, 22 and
+    42 (2-marker segments 2 and 7 under the root, 3-marker segment 13) ended on markers 22,
+    42 and 6. Marker 42's piece lies 145.6 x off marker 6's one mate and fits marker 42's
+    two (0.8, 0.9 x), but an exchange would hand marker 6 marker 22's piece (5.0 x off its
+    mate), so step 12 made none. ``MODEL_ROTATIONS`` moves the three round: marker 22's
+    piece fits its mate (1.0 x) and marker 6's piece fits marker 6's (1.0 x), missing marker
+    22's by 2.7 x. Without it the three stay mixed."""
+    fig, _, ids = _right_then_off(monkeypatch, 17802, "MODEL_ROTATIONS", False)
+    assert [6, 22] in ids and [22, 42] in ids and [6, 42] in ids
+    seg = fig.marker_segment
+    assert len({seg[6], seg[22], seg[42]}) == 3
+
+
 def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
     """``model._Model.judge`` on a rigid 3-marker body moving at random, each marker two
     fragments: the second piece of marker 0 judged at home fits (z about 1); replaced by a
