@@ -49,6 +49,11 @@ apart, 199 and 202 mm from the third, exchanged end pieces: no distance tells th
 21.9 to 21.2 mm^2; since stop 65 step 8's two-track bodies exchange them back,
 ``PAIR_EVERY_LENDER`` and ``PAIR_OVER_JUMPS``) and 14980 (an 11-frame first piece no mate
 sees, left an id of its own; since stop 64 step 11 joins it, ``SPHERE_JOINS_PAIRS``).
+Held-out figure 17888 (first run at stop 66) stays wrong: marker 1's first 29 frames sit on
+marker 17 (3-marker segment), 2.8 x off the one mate that sees them there (under
+``MODEL_OFF_Z``), and on marker 1 one of its three mates (marker 5, of a hinge child, 39.4 mm
+away and one body with it over marker 1's other frames) finds them 26.4 x off, past
+``MODEL_FAR_Z``; marker 17's own first 36 frames are left an id of their own.
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
