@@ -219,6 +219,14 @@ def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
             groups = new
         if [sorted(g) for g in groups] != [sorted(g) for g in res.groups]:
             res = _with_groups(X, res, groups)
+            if rules.MODEL_JOINS and res.n_markers > n_min:
+                # a piece moved off a marker can leave that marker's own piece free to join
+                res = merge_again(res, False)
+                if res.n_markers > n_min:
+                    groups = _join_by_continuity(X, [list(g) for g in res.groups], n_min,
+                                                 max_step)
+                    if len(groups) < res.n_markers:
+                        res = _with_groups(X, res, groups)
     return res
 
 

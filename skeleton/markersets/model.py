@@ -118,6 +118,13 @@ class _Model:
         d_rest = np.linalg.norm(P[own][:, others] - Pk[own][:, None], axis=2)
         c, s = _robust(d_rest, rules.MODEL_PAIR_FRAMES)
         body = np.isfinite(s) & (s <= rules.MODEL_BODY_SD * self.s0)
+        if rules.MODEL_NEAR_MATES:
+            # each own frame's distance in frames from the piece's nearest frame
+            pf = np.flatnonzero(frf)
+            at = np.arange(len(frf))
+            i = np.clip(np.searchsorted(pf, at), 1, len(pf) - 1) if len(pf) > 1 else 0
+            gap = np.minimum(np.abs(at - pf[i]), np.abs(at - pf[i - 1])) if len(pf) > 1 \
+                else np.abs(at - pf[0])
         out = []
         for col in np.flatnonzero(body):
             j = others[col]
@@ -131,8 +138,17 @@ class _Model:
             n = int(t.sum())
             if n < rules.MODEL_MIN_FRAMES:
                 continue
+            unit = max(s[col], self.s0)
             miss = np.linalg.norm(X[t, f] - P[t, j], axis=1) - c[col]
-            z = float(np.sqrt(np.mean(miss ** 2)) / max(s[col], self.s0))
+            z = float(np.sqrt(np.mean(miss ** 2)) / unit)
+            if rules.MODEL_NEAR_MATES:
+                # the mate on the marker's own n frames nearest the piece: a mate whose
+                # distance drifts there cannot judge a piece beside them
+                both = np.flatnonzero(own & ~np.isnan(P[:, j, 0]))
+                near = both[np.argsort(gap[both], kind="stable")[:n]]
+                d_near = np.linalg.norm(P[near, j] - Pk[near], axis=1) - c[col]
+                if np.sqrt(np.mean(d_near ** 2)) / unit > rules.MODEL_FIT_Z:
+                    continue
             out.append((z, n))
         return out
 
@@ -142,12 +158,19 @@ def _off(js) -> bool:
     return bool(js) and float(np.median([z for z, _ in js])) > rules.MODEL_OFF_Z
 
 
-def _fits(js) -> bool:
+def _fits(js, half=False) -> bool:
     """Fits a marker: the median z within ``MODEL_FIT_Z``, none beyond ``MODEL_FAR_Z``, and
-    ``MODEL_EVIDENCE`` frames seen with the mates in all."""
-    return (bool(js) and float(np.median([z for z, _ in js])) <= rules.MODEL_FIT_Z
-            and max(z for z, _ in js) <= rules.MODEL_FAR_Z
-            and sum(n for _, n in js) >= rules.MODEL_EVIDENCE)
+    ``MODEL_EVIDENCE`` frames seen with the mates in all. With ``half`` (an off piece's
+    destination, ``MODEL_HALF_FITS``): half the mates within, ``MODEL_STRONG_MATES`` at
+    least, in place of the median."""
+    if not js or max(z for z, _ in js) > rules.MODEL_FAR_Z \
+            or sum(n for _, n in js) < rules.MODEL_EVIDENCE:
+        return False
+    zs = [z for z, _ in js]
+    if half and rules.MODEL_HALF_FITS:
+        within = sum(z <= rules.MODEL_FIT_Z for z in zs)
+        return 2 * within >= len(zs) and within >= min(len(zs), rules.MODEL_STRONG_MATES)
+    return float(np.median(zs)) <= rules.MODEL_FIT_Z
 
 
 def _takes(js) -> bool:
@@ -177,7 +200,8 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                     continue
                 home = model.judge(f, a)
                 off = _off(home)
-                weak = rules.MODEL_STRONGER and len(home) == 1 and _fits(home)
+                weak = rules.MODEL_STRONGER and len(home) == 1 and (
+                    _fits(home) or (rules.MODEL_UNSURE and not off))
                 if not (off or weak):
                     continue
                 change = _destination(model, vis, span, groups, f, a, off, max_step, fixed)
@@ -204,7 +228,7 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=()):
             continue
         js = model.judge(f, b, without=clash)
         if off:
-            if not _fits(js):
+            if not _fits(js, half=True):
                 continue
         elif clash or len(js) < rules.MODEL_STRONG_MATES or not _fits(js):
             continue

@@ -118,5 +118,12 @@ MODEL_STRONGER = True   # ... a piece fitting one mate moves where it fits sever
 MODEL_STRONG_MATES = 2  # ... that many
 MODEL_ROUNDS = 20       # ... one change a round
 MODEL_ROTATIONS = True  # ... three pieces moved round three markers where no exchange fits (17802)
+MODEL_NEAR_MATES = True  # ... a mate judges a piece only where it finds the marker's own
+#                          frames nearest the piece within MODEL_FIT_Z (17888)
+MODEL_UNSURE = True      # ... a piece one mate judges, fitting or not, moves where it fits
+#                          several (17888: 2.8 on its one mate)
+MODEL_HALF_FITS = True   # ... an off piece fits where half its mates find it within
+#                          MODEL_FIT_Z, MODEL_STRONG_MATES at least (18074: 0.9, 1.3, 3.7, 5.1)
+MODEL_JOINS = True       # ... after step 12 moved pieces, ids merged again as after step 8
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then
 #                         step 12 again (``spheres._sphere_check``; figure 12175)

@@ -1744,6 +1744,39 @@ def test_model_check_moves_three_pieces_round_three_markers(monkeypatch):
     assert len({seg[6], seg[22], seg[42]}) == 3
 
 
+def test_model_check_drops_a_drifting_mate_and_joins_the_marker_left_free(monkeypatch):
+    """Held-out figure 17888 (first run at stop 66): marker 1's first 29 frames sat on
+    marker 17 (3-marker segment 6), 2.8 x off the one mate seeing them there, and marker
+    17's own first 36 frames were an id of their own. On marker 1 one of three mates (marker
+    5, of a hinge child, 39.4 mm away) finds the piece 26.4 x off, but it finds marker 1's
+    own 29 frames nearest the piece 5.5 x off too: it cannot judge there
+    (``MODEL_NEAR_MATES``); the other two find 1.1 and 0.9. A piece one mate judges moves
+    where two fit it (``MODEL_UNSURE``), and marker 17's two ids then join
+    (``MODEL_JOINS``). Without the first, marker 1's piece stays on marker 17; without
+    the last, marker 17 stays two ids."""
+    fig, _, ids = _right_then_off(monkeypatch, 17888, "MODEL_NEAR_MATES", False)
+    assert [1, 17] in ids and [17] in ids
+    import skeleton.markersets as ms
+    monkeypatch.setattr(ms.rules, "MODEL_NEAR_MATES", True)
+    monkeypatch.setattr(ms.rules, "MODEL_JOINS", False)
+    fig, mo, X, owner = _bench_figure(17888)
+    ids = [sorted({int(owner[f]) for f in g}) for g in merge_fragments(X).groups]
+    assert all(len(i) == 1 for i in ids) and ids.count([17]) == 2
+
+
+def test_model_check_moves_an_off_piece_where_half_its_mates_fit(monkeypatch):
+    """Held-out figure 18074 (first run at stop 66): marker 17's first 28 frames sat on
+    marker 15, both of 4-marker hinge segment 4, off marker 15's three mates (5.3, 12.6 and
+    22.4 x). On marker 17 its two segment mates find the piece 0.9 and 1.3 x off, two
+    markers of the hinge parent (one body with marker 17 by chance, robust sds 1.43 and 1.17
+    x s0) 3.7 and 5.1: a median of 2.5, over ``MODEL_FIT_Z``. ``MODEL_HALF_FITS`` moves an
+    off piece where half its mates, two at least, fit it; without it the piece stays."""
+    fig, _, ids = _right_then_off(monkeypatch, 18074, "MODEL_HALF_FITS", False)
+    assert [15, 17] in ids and [17] in ids
+    seg = fig.marker_segment
+    assert seg[15] == seg[17]
+
+
 def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
     """``model._Model.judge`` on a rigid 3-marker body moving at random, each marker two
     fragments: the second piece of marker 0 judged at home fits (z about 1); replaced by a
