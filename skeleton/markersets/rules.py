@@ -113,6 +113,7 @@ MODEL_MIN_FRAMES = 5    # ... a mate judges a piece it is seen with this many fr
 MODEL_OFF_Z = 3.0       # ... off: the judging mates' median rms miss beyond this x the sd
 MODEL_FIT_Z = 2.0       # ... fits: their median within this x
 MODEL_FAR_Z = 6.0       # ... and none beyond this x
+MODEL_FAR_OUTVOTED = 3  # ... unless this many mates find it within MODEL_FIT_Z (18401)
 MODEL_EVIDENCE = 10     # ... seen by them for this many frames in all
 MODEL_STRONGER = True   # ... a piece fitting one mate moves where it fits several (12669)
 MODEL_STRONG_MATES = 2  # ... that many
@@ -125,5 +126,7 @@ MODEL_UNSURE = True      # ... a piece one mate judges, fitting or not, moves wh
 MODEL_HALF_FITS = True   # ... an off piece fits where half its mates find it within
 #                          MODEL_FIT_Z, MODEL_STRONG_MATES at least (18074: 0.9, 1.3, 3.7, 5.1)
 MODEL_JOINS = True       # ... after step 12 moved pieces, ids merged again as after step 8
+MODEL_STRONGER_EXCHANGES = True  # ... a piece fitting one mate is exchanged where it fits
+#                                  several, the pieces there fitting its marker, not theirs (18401)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then
 #                         step 12 again (``spheres._sphere_check``; figure 12175)

@@ -1777,6 +1777,19 @@ def test_model_check_moves_an_off_piece_where_half_its_mates_fit(monkeypatch):
     assert seg[15] == seg[17]
 
 
+def test_model_check_exchanges_a_piece_fitting_one_chance_mate(monkeypatch):
+    """Held-out figure 18401 (first run at stop 67): marker 18's last 140 frames (4-marker
+    hinge segment 5) sat on marker 3 (2-marker segment 1, its parent), and marker 3's last
+    two pieces on marker 18. On marker 3 the piece fits the one mate (marker 4, one body
+    with marker 18 by chance: 1.4 x); on marker 18 three segment mates find it 1.0, 0.9 and
+    1.0 x and marker 4 7.1 x, past ``MODEL_FAR_Z`` but outvoted (``MODEL_FAR_OUTVOTED``).
+    Marker 3's pieces there fit marker 4 (0.8, 0.9 x) and are off marker 18's mates, so the
+    pieces are exchanged (``MODEL_STRONGER_EXCHANGES``); without that the two stay mixed."""
+    fig, _, ids = _right_then_off(monkeypatch, 18401, "MODEL_STRONGER_EXCHANGES", False)
+    assert ids.count([3, 18]) == 2
+    assert fig.parents[fig.marker_segment[18]] == fig.marker_segment[3]
+
+
 def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
     """``model._Model.judge`` on a rigid 3-marker body moving at random, each marker two
     fragments: the second piece of marker 0 judged at home fits (z about 1); replaced by a
