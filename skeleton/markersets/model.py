@@ -55,11 +55,15 @@ on marker 1 one of its three mates (marker 5, of a hinge child, 39.4 mm away and
 with it over marker 1's other frames) finds them 26.4 x off, past ``MODEL_FAR_Z``; marker
 17's own first 36 frames were left an id of their own. Since stop 67:
 
-- A mate judges a piece only where it finds the marker's own frames nearest the piece (as
-  many as it sees the piece in) within ``MODEL_FIT_Z`` (``MODEL_NEAR_MATES``): a mate one
-  body with the marker by chance (a hinge neighbour) drifts over time, and a piece at the
-  end of a track meets it where it has drifted. 17888's marker 5 finds marker 1's own 29
-  frames nearest the piece 5.5 x off; the other two mates find the piece 1.1 and 0.9 x.
+- A mate has a say in whether a piece fits a marker only where it finds the marker's own
+  frames nearest the piece (as many as it sees the piece in; in the marker's other
+  fragments not off it, since another marker's piece there is no measure) within
+  ``MODEL_FIT_Z`` (``MODEL_NEAR_MATES``; ``judge(.., fit=True)``): a mate one body with the
+  marker by chance (a hinge neighbour) drifts over time, and a piece at the end of a track
+  meets it where it has drifted. Such a mate still counts where a piece is judged off.
+  17888's marker 5 finds marker 1's own 29 frames nearest the piece 5.5 x off; the other
+  two mates find the piece 1.1 and 0.9 x. (Counting those mates nowhere, not even for off,
+  left figure 13725's two markers mixed: a piece judged beside another marker's piece.)
 - A piece one mate judges, fitting it or not (but not off), moves where ``MODEL_STRONG_
   MATES`` fit it, free over its frames (``MODEL_UNSURE``; 17888: 2.8 x on its one mate).
 - After step 12 moved pieces, ids are merged again as after step 8 (step 3's linkage,
@@ -116,6 +120,7 @@ class _Model:
     def __init__(self, X, vis, groups):
         self.X, self.vis, self.groups = X, vis, groups
         self.P = _tracks(X, groups)
+        self._memo = {}
         n = len(groups)
         sd = np.full((n, n), np.nan)
         for i in range(n):
@@ -126,10 +131,19 @@ class _Model:
             warnings.simplefilter("ignore", RuntimeWarning)
             self.s0 = float(np.nanmedian(np.nanmin(sd, 1)))
 
-    def judge(self, f, k, without=()) -> list[tuple[float, int]]:
+    def _judged(self, h, k, without) -> list[tuple[float, int]]:
+        """``judge(h, k, without)``, kept for the model's life."""
+        key = (h, k, tuple(sorted(without)))
+        if key not in self._memo:
+            self._memo[key] = self.judge(h, k, without)
+        return self._memo[key]
+
+    def judge(self, f, k, without=(), fit=False) -> list[tuple[float, int]]:
         """(z, frames) for each one-body mate of marker ``k`` seen with fragment ``f``:
         the mates and their distances measured on k's fragments other than ``f`` and
-        ``without``, over frames where none of those is seen."""
+        ``without``, over frames where none of those is seen. With ``fit`` (a verdict
+        whether f fits k, ``MODEL_NEAR_MATES``) without the mates that miss k's own frames
+        nearest f: such a mate may find a piece off, but it does not veto a fit."""
         X, vis, P = self.X, self.vis, self.P
         frf = vis[:, f]
         Pk = _tracks(X, [[h for h in self.groups[k] if h != f and h not in without]])[:, 0]
@@ -143,7 +157,12 @@ class _Model:
         d_rest = np.linalg.norm(P[own][:, others] - Pk[own][:, None], axis=2)
         c, s = _robust(d_rest, rules.MODEL_PAIR_FRAMES)
         body = np.isfinite(s) & (s <= rules.MODEL_BODY_SD * self.s0)
-        if rules.MODEL_NEAR_MATES:
+        near_check = fit and rules.MODEL_NEAR_MATES
+        if near_check:
+            home = own.copy()
+            for h in self.groups[k]:
+                if h != f and h not in without and _off(self._judged(h, k, tuple(without))):
+                    home &= ~vis[:, h]
             # each own frame's distance in frames from the piece's nearest frame
             pf = np.flatnonzero(frf)
             at = np.arange(len(frf))
@@ -166,13 +185,14 @@ class _Model:
             unit = max(s[col], self.s0)
             miss = np.linalg.norm(X[t, f] - P[t, j], axis=1) - c[col]
             z = float(np.sqrt(np.mean(miss ** 2)) / unit)
-            if rules.MODEL_NEAR_MATES:
-                # the mate on the marker's own n frames nearest the piece: a mate whose
-                # distance drifts there cannot judge a piece beside them
-                both = np.flatnonzero(own & ~np.isnan(P[:, j, 0]))
+            if near_check:
+                # the mate on the marker's own n frames nearest the piece, in k's other
+                # fragments not off k (another marker's piece there is no measure): a
+                # mate whose distance drifts there cannot judge a piece beside them
+                both = np.flatnonzero(home & ~np.isnan(P[:, j, 0]))
                 near = both[np.argsort(gap[both], kind="stable")[:n]]
                 d_near = np.linalg.norm(P[near, j] - Pk[near], axis=1) - c[col]
-                if np.sqrt(np.mean(d_near ** 2)) / unit > rules.MODEL_FIT_Z:
+                if len(near) and np.sqrt(np.mean(d_near ** 2)) / unit > rules.MODEL_FIT_Z:
                     continue
             out.append((z, n))
         return out
@@ -229,7 +249,7 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                 home = model.judge(f, a)
                 off = _off(home)
                 weak = rules.MODEL_STRONGER and len(home) == 1 and (
-                    _fits(home) or (rules.MODEL_UNSURE and not off))
+                    _fits(model.judge(f, a, fit=True)) or (rules.MODEL_UNSURE and not off))
                 if not (off or weak):
                     continue
                 change = _destination(model, vis, span, groups, f, a, off, max_step, fixed)
@@ -254,15 +274,15 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=()):
         clash = _clash(vis, groups, b, f)
         if set(clash) & set(fixed):
             continue
-        js = model.judge(f, b, without=clash)
+        js = model.judge(f, b, without=clash, fit=True)
         if off:
             if not _fits(js, half=True):
                 continue
         elif len(js) < rules.MODEL_STRONG_MATES or not _fits(js):
             continue
         elif clash and not (rules.MODEL_STRONGER_EXCHANGES and all(
-                not _fits(model.judge(h, b, without=[x for x in clash if x != h]))
-                and _fits(model.judge(h, a, without=(f,))) for h in clash)):
+                not _fits(model.judge(h, b, without=[x for x in clash if x != h], fit=True))
+                and _fits(model.judge(h, a, without=(f,), fit=True)) for h in clash)):
             # a piece fitting one mate: an exchange only where each piece coming back
             # does not fit b (without the others) and fits a
             continue
@@ -271,7 +291,8 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=()):
         if clash:
             # an exchange: each piece coming back is off b and fits a without f
             if off and not all(_off(model.judge(h, b))
-                               and _takes(model.judge(h, a, without=(f,))) for h in clash):
+                               and _takes(model.judge(h, a, without=(f,), fit=True))
+                               for h in clash):
                 if rules.MODEL_ROTATIONS and len(clash) == 1:
                     found += _rotations(model, vis, span, groups, f, a, b, clash[0],
                                         max_step, fixed)
@@ -311,8 +332,9 @@ def _rotations(model, vis, span, groups, f, a, b, h, max_step, fixed=()) -> list
         if len(clash) != 1 or clash[0] in fixed:
             continue
         r = clash[0]
-        if (not _fits(model.judge(h, c, without=clash)) or _fits(model.judge(r, c))
-                or not _takes(model.judge(r, a, without=(f,)))):
+        if (not _fits(model.judge(h, c, without=clash, fit=True))
+                or _fits(model.judge(r, c, fit=True))
+                or not _takes(model.judge(r, a, without=(f,), fit=True))):
             continue
         new = {a: [x for x in groups[a] if x != f] + [r],
                b: [x for x in groups[b] if x != h] + [f],

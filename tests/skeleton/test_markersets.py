@@ -1351,10 +1351,8 @@ def test_cross_exchange_never_makes_a_piece_a_misfit(monkeypatch):
     marker 12 the piece fitted segment partners 11 and 10 (jump sums 2.35 and 4.25 x s0
     squared, bound 10.8); on marker 9 its one judge, segment partner 8, put it at 30.3:
     step 4c's misfit, which no step then moved back. Step 4b now makes no exchange that
-    turns a piece judged to fit at home into a misfit (``NO_NEW_MISFITS``). Since stop 67
-    step 12 repairs that misfit too (``MODEL_NEAR_MATES``), so the test turns both off."""
-    _, _, ids = _right_then_off(monkeypatch, 4430, "NO_NEW_MISFITS", False,
-                                failure_also={"MODEL_NEAR_MATES": False})
+    turns a piece judged to fit at home into a misfit (``NO_NEW_MISFITS``)."""
+    _, _, ids = _right_then_off(monkeypatch, 4430, "NO_NEW_MISFITS", False)
     assert [9, 12] in ids
 
 
@@ -1751,7 +1749,7 @@ def test_model_check_drops_a_drifting_mate_and_joins_the_marker_left_free(monkey
     marker 17 (3-marker segment 6), 2.8 x off the one mate seeing them there, and marker
     17's own first 36 frames were an id of their own. On marker 1 one of three mates (marker
     5, of a hinge child, 39.4 mm away) finds the piece 26.4 x off, but it finds marker 1's
-    own 29 frames nearest the piece 5.5 x off too: it cannot judge there
+    own 29 frames nearest the piece 5.5 x off too: it cannot veto a fit there
     (``MODEL_NEAR_MATES``); the other two find 1.1 and 0.9. A piece one mate judges moves
     where two fit it (``MODEL_UNSURE``), and marker 17's two ids then join
     (``MODEL_JOINS``). Without the first, marker 1's piece stays on marker 17; without
