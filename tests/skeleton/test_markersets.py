@@ -1216,8 +1216,10 @@ def test_a_misfit_with_no_free_marker_is_exchanged(monkeypatch):
     Step 4c now makes the one exchange after which every moved piece fits the marker it
     joins (``MISFIT_EXCHANGES``). (Since stop 57 step 4b's ``BODY_CONFIRMS``, bodies
     confirming an exchange under its margin, also puts it right; it is shown with that rule
-    off.)"""
+    off. Since stop 67 step 12's ``MODEL_STRONGER_EXCHANGES`` does too: off in the failure
+    case.)"""
     _, _, ids = _right_then_off(monkeypatch, 3224, "MISFIT_EXCHANGES", False,
+                                failure_also={"MODEL_STRONGER_EXCHANGES": False},
                                 BODY_CONFIRMS=False)
     assert [5, 19] in ids
 
