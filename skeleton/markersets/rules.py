@@ -101,6 +101,8 @@ AGREEING_SPHERES = True  # step 8: last, an exchange that two or more bodies acr
 #                          joint prefer and none opposes, where no sphere decides (10034)
 AGREEING_SPHERES_GAIN = 10.0   # ... each of two by at least this drop in the residual sum of
 #                                squares / its variance (2159 wrong ones, 0-184: never two > 0)
+AGREED_DIRECTIONS = True  # ... none where a body holds the two's direction tighter as
+#                           merged by DIRECTION_MARGIN (18946: hinge spheres alike, 0.98 -> 0.16)
 CONTINUITY_MARGIN = 4.0      # steps 7b and 10: the most a join may cost in continuity
 CONTINUITY_EXCHANGE_MARGIN = 2.0   # step 8: the least gain in the continuity cost (1304)
 CONTINUITY_MM_PER_FRAME = (0.6, 0.009)   # a junction's typical miss: a x gap + b x gap^2 (mm)

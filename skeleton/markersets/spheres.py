@@ -435,11 +435,18 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                     pending.append((a, b, na, nb, moved))
                 if late:
                     continue
-                if rules.AGREEING_SPHERES and not veto:
+                spread = np.array([r for r in spread if np.isfinite(r).all()]).reshape(-1, 2)
+                # a body that holds their direction tighter as merged, by the margin (and,
+                # with CONTESTED_DIRECTIONS, none that holds it tighter exchanged)
+                turned = bool(spread.size and (
+                    spread[:, 0] - spread[:, 1] >= direction_margin).any() and not (
+                    rules.CONTESTED_DIRECTIONS
+                    and (spread[:, 1] - spread[:, 0] >= direction_margin).any()))
+                if rules.AGREEING_SPHERES and not veto and not (
+                        rules.AGREED_DIRECTIONS and turned):
                     agree = _spheres_agree(gains)
                     if agree is not None and (agreed is None or agree > agreed[0]):
                         agreed = (agree, a, b, na, nb)
-                spread = np.array([r for r in spread if np.isfinite(r).all()]).reshape(-1, 2)
                 if not veto and spread.size:
                     # the body that holds their direction tightest (their neighbour)
                     rk, rx = spread[np.argmax(spread.max(1))]
@@ -447,10 +454,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                             and not (spread[:, 0] - spread[:, 1] >= direction_margin).any()
                             and (turn is None or rx - rk > turn[0])):
                         turn = (rx - rk, a, b, na, nb)
-                if rules.CONTINUITY_EXCHANGES and not veto and not (
-                        spread.size and (spread[:, 0] - spread[:, 1] >= direction_margin).any()
-                        and not (rules.CONTESTED_DIRECTIONS and (
-                            spread[:, 1] - spread[:, 0] >= direction_margin).any())):
+                if rules.CONTINUITY_EXCHANGES and not veto and not turned:
                     if smooth_now is None:
                         smooth_now = continuity(ga) + continuity(gb)
                     smooth = smooth_now - continuity(na) - continuity(nb)
