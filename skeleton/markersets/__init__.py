@@ -173,6 +173,16 @@ def _merge_again(X, n_min, max_distance_m, loose_distance_m, n_markers, samples,
 def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
              merge_again) -> MarkerSets:
     """Steps 4-12b (the step modules) on the linkage's markers ``res``."""
+    def merge_and_join(res, joins):
+        # a step that moved pieces can leave a marker as two ids: merged within
+        # max_distance_m, then (``joins``) joined by motion continuity as in step 7b
+        res = merge_again(res, False)
+        if joins and res.n_markers > n_min:
+            groups = _join_by_continuity(X, [list(g) for g in res.groups], n_min, max_step)
+            if len(groups) < res.n_markers:
+                res = _with_groups(X, res, groups)
+        return res
+
     res = _with_groups(X, res, _repair_swaps(X, [list(g) for g in res.groups],
                                              min_frames, swap_margin, max_step=max_step))
     # a marker left as two ids beside a swap (the swap made them overlap) can merge now
@@ -185,13 +195,8 @@ def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
     if len(groups) < res.n_markers or exchanged:
         res = _with_groups(X, res, groups)
     if exchanged:
-        # step 8 can leave a marker as two ids likewise: merged within max_distance_m
-        res = merge_again(res, False)
-        if rules.JOINS_AFTER_EXCHANGES and res.n_markers > n_min:
-            # and, further apart, joined by motion continuity as in step 7b (4881)
-            groups = _join_by_continuity(X, [list(g) for g in res.groups], n_min, max_step)
-            if len(groups) < res.n_markers:
-                res = _with_groups(X, res, groups)
+        # step 8 can leave a marker as two ids likewise (joins: 4881)
+        res = merge_and_join(res, rules.JOINS_AFTER_EXCHANGES)
     if rules.SPLIT_JOINS and res.n_markers > n_min:
         groups = _split_joins(X, [list(g) for g in res.groups], n_min, min_frames,
                               max_step=max_step)
@@ -221,12 +226,7 @@ def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
             res = _with_groups(X, res, groups)
             if rules.MODEL_JOINS and res.n_markers > n_min:
                 # a piece moved off a marker can leave that marker's own piece free to join
-                res = merge_again(res, False)
-                if res.n_markers > n_min:
-                    groups = _join_by_continuity(X, [list(g) for g in res.groups], n_min,
-                                                 max_step)
-                    if len(groups) < res.n_markers:
-                        res = _with_groups(X, res, groups)
+                res = merge_and_join(res, True)
     return res
 
 

@@ -91,6 +91,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from . import rules
 from .tracks import _paced, _spans, _tracks
@@ -164,11 +165,7 @@ class _Model:
                 if h != f and h not in without and _off(self._judged(h, k, tuple(without))):
                     home &= ~vis[:, h]
             # each own frame's distance in frames from the piece's nearest frame
-            pf = np.flatnonzero(frf)
-            at = np.arange(len(frf))
-            i = np.clip(np.searchsorted(pf, at), 1, len(pf) - 1) if len(pf) > 1 else 0
-            gap = np.minimum(np.abs(at - pf[i]), np.abs(at - pf[i - 1])) if len(pf) > 1 \
-                else np.abs(at - pf[0])
+            gap = distance_transform_edt(~frf)
         out = []
         for col in np.flatnonzero(body):
             j = others[col]
@@ -212,11 +209,10 @@ def _fits(js, half=False) -> bool:
     if not js or sum(n for _, n in js) < rules.MODEL_EVIDENCE:
         return False
     zs = [z for z, _ in js]
-    if max(zs) > rules.MODEL_FAR_Z and \
-            sum(z <= rules.MODEL_FIT_Z for z in zs) < rules.MODEL_FAR_OUTVOTED:
+    within = sum(z <= rules.MODEL_FIT_Z for z in zs)
+    if max(zs) > rules.MODEL_FAR_Z and within < rules.MODEL_FAR_OUTVOTED:
         return False
     if half and rules.MODEL_HALF_FITS:
-        within = sum(z <= rules.MODEL_FIT_Z for z in zs)
         return 2 * within >= len(zs) and within >= min(len(zs), rules.MODEL_STRONG_MATES)
     return float(np.median(zs)) <= rules.MODEL_FIT_Z
 

@@ -804,6 +804,21 @@ def test_an_exchange_two_bodies_prefer_and_none_opposes_is_made(monkeypatch):
     assert fig.marker_segment[12] == fig.marker_segment[13]
 
 
+def test_two_bodies_agreeing_do_not_exchange_what_the_direction_holds(monkeypatch):
+    """Held-out figure 18946 (first run at stop 67): markers 0 and 1 form the 2-marker root
+    segment, whose three children turn about hinges. In a hinge child's frame each root
+    marker keeps a circle about the axis, and two coaxial circles lie on one sphere, so
+    the spheres fit both assignments alike: exchanging the markers' first pieces (84 and
+    31) gained 31.5 and 30.2 residual variances on the two 3-marker children, and two
+    bodies agreeing made it (``AGREEING_SPHERES``). Those children held the two markers'
+    direction at 0.991 and 0.982 as merged and 0.718 and 0.157 exchanged; no body held it
+    tighter exchanged. Continuity, a direction veto and step 8's other verdicts already
+    keep such exchanges; now the agreeing spheres do too (``AGREED_DIRECTIONS``)."""
+    fig, _, ids = _right_then_off(monkeypatch, 18946, "AGREED_DIRECTIONS", False)
+    assert ids.count([0, 1]) == 2
+    assert fig.marker_segment[0] == fig.marker_segment[1] == 0
+
+
 def test_a_voter_moves_onto_a_marker_without_voters_where_the_move_is_clear(monkeypatch):
     """Held-out figure 10199 (first run at stop 54): the linkage exchanged the runs of
     markers 39 and 48 (segments 13 and 15) around frames 206-250. One id holds both voters
