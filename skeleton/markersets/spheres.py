@@ -120,7 +120,15 @@
    Last, where no sphere decides, no direction and no continuity: an exchange that two or
    more bodies across one joint prefer, each by ``AGREEING_SPHERES_GAIN`` (10) in the
    residual sum of squares over its variance, and none opposes (``AGREEING_SPHERES``,
-   ``_spheres_agree``; stop 56, held-out figure 10034). After that, where still nothing
+   ``_spheres_agree``; stop 56, held-out figure 10034). Since stop 68 not where a body
+   holds the two markers' direction tighter as merged by the direction margin, none
+   holding it tighter exchanged (``AGREED_DIRECTIONS``, the veto continuity exchanges
+   have): about a hinge the spheres cannot tell the two markers apart, since each keeps a
+   circle about the axis and two coaxial circles lie on one sphere. Held-out figure
+   18946 (first run at stop 67): markers 0 and 1 form the 2-marker root segment, its three
+   children hinged; exchanging their first pieces gained 31.5 and 30.2 on the two 3-marker
+   children, which held the direction at 0.991 and 0.982 as merged, 0.718 and 0.157
+   exchanged. After that, where still nothing
    decides, the spheres in the frame of a two-track body (two tracks moving as one that
    no body of three holds, with their joint to the body of three or more they fit best,
    within ``PAIR_JOINT_RMS`` (2) x s0, as the third point; ``_pair_frames``; figure 7375
