@@ -248,7 +248,8 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                     _fits(model.judge(f, a, fit=True)) or (rules.MODEL_UNSURE and not off))
                 if not (off or weak):
                     continue
-                change = _destination(model, vis, span, groups, f, a, off, max_step, fixed)
+                change = _destination(model, vis, span, groups, f, a, off, max_step, fixed,
+                                      home_z=home[0][0] if weak and not off else None)
                 if change is not None:
                     score = min(z for z, _ in home) if off else 0.0
                     changes.append((score, change))
@@ -259,9 +260,16 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
     return groups
 
 
-def _destination(model, vis, span, groups, f, a, off, max_step, fixed=()):
+def _pooled(js) -> float:
+    """The rms z, over their frames, of the mates that find a piece within ``MODEL_FIT_Z``."""
+    fit = [(z, n) for z, n in js if z <= rules.MODEL_FIT_Z]
+    return float(np.sqrt(sum(n * z * z for z, n in fit) / sum(n for _, n in fit)))
+
+
+def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z=None):
     """The new groups after fragment ``f`` of marker ``a`` moves (or is exchanged) to the one
-    marker that takes it, or None."""
+    marker that takes it, or None. ``home_z``: the z of the one mate that judges a piece
+    that is not off (``MODEL_STRONGER``)."""
     X = model.X
     found = []
     for b in range(len(groups)):
@@ -275,6 +283,9 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=()):
             if not _fits(js, half=True):
                 continue
         elif len(js) < rules.MODEL_STRONG_MATES or not _fits(js):
+            continue
+        elif rules.MODEL_STRONGER_CLEAR and _pooled(js) > max(home_z, rules.MODEL_CLEAR_Z):
+            # mates that find it less clearly than its one mate at home do not outvote it
             continue
         elif clash and not (rules.MODEL_STRONGER_EXCHANGES and all(
                 not _fits(model.judge(h, b, without=[x for x in clash if x != h], fit=True))

@@ -446,10 +446,10 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                 spread = np.array([r for r in spread if np.isfinite(r).all()]).reshape(-1, 2)
                 # a body that holds their direction tighter as merged, by the margin (and,
                 # with CONTESTED_DIRECTIONS, none that holds it tighter exchanged)
-                turned = bool(spread.size and (
-                    spread[:, 0] - spread[:, 1] >= direction_margin).any() and not (
+                worse = bool((spread[:, 0] - spread[:, 1] >= direction_margin).any())
+                turned = worse and not (
                     rules.CONTESTED_DIRECTIONS
-                    and (spread[:, 1] - spread[:, 0] >= direction_margin).any()))
+                    and (spread[:, 1] - spread[:, 0] >= direction_margin).any())
                 if rules.AGREEING_SPHERES and not veto and not (
                         rules.AGREED_DIRECTIONS and turned):
                     agree = _spheres_agree(gains)
@@ -459,7 +459,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                     # the body that holds their direction tightest (their neighbour)
                     rk, rx = spread[np.argmax(spread.max(1))]
                     if (rx - rk >= direction_margin
-                            and not (spread[:, 0] - spread[:, 1] >= direction_margin).any()
+                            and not worse
                             and (turn is None or rx - rk > turn[0])):
                         turn = (rx - rk, a, b, na, nb)
                 if rules.CONTINUITY_EXCHANGES and not veto and not turned:

@@ -1660,6 +1660,17 @@ def test_model_check_moves_a_piece_fitting_one_mate_where_it_fits_several(monkey
     assert [1, 7] in ids
 
 
+def test_model_check_does_not_move_a_piece_where_its_mates_fit_it_less_clearly(monkeypatch):
+    """Held-out figure 20213 (first run at stop 68): marker 8's last 12 frames (2-marker
+    segment 3) fit its one mate at 0.86 x the robust sd. Marker 38 (4-marker hinge child
+    segment 14), free over those frames and paced, has two mates finding the piece 1.55 and
+    1.73 x over 12 frames each: within ``MODEL_FIT_Z``, so ``MODEL_STRONGER`` moved it
+    there. Their pooled rms, 1.64 x, is beyond what correct pieces give (``MODEL_CLEAR_Z``)
+    and worse than the one mate at home; ``MODEL_STRONGER_CLEAR`` keeps the piece."""
+    fig, _, ids = _right_then_off(monkeypatch, 20213, "MODEL_STRONGER_CLEAR", False)
+    assert [8, 38] in ids
+
+
 def test_sphere_joins_judge_in_a_two_marker_bodys_frame(monkeypatch):
     """Figure 14980 (first run at stop 62, wrong until stop 64): marker 33's first 11
     frames (2-marker hinge segment 11, its mate hidden then) were left an id of their own,
