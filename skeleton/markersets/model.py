@@ -84,6 +84,20 @@ with it over marker 1's other frames) finds them 26.4 x off, past ``MODEL_FAR_Z`
   x); on marker 18 its three segment mates find it 1.0, 0.9 and 1.0 x, marker 4 7.1 x;
   marker 3's two pieces there fit marker 4 (0.8, 0.9 x).
 
+Since stop 69 a piece that is not off moves (or is exchanged) where several mates fit it
+only if they fit it clearly: the rms z of those within ``MODEL_FIT_Z``, pooled over their
+frames (``_pooled``), within ``MODEL_CLEAR_Z`` or within the z of its one mate at home
+(``MODEL_STRONGER_CLEAR``). Held-out figure 20213 (stop 68): marker 8's last 12 frames
+(2-marker segment 3) fit its one mate at 0.86; marker 38 (4-marker hinge child segment 14,
+134.7 mm away, free over those frames) has two mates finding it 1.55 and 1.73 over 12 frames
+each (pooled 1.64), and ``MODEL_STRONGER`` moved it there. No bound on the pooled z alone
+tells such a move: pieces on their right marker with two or more mates within
+``MODEL_FIT_Z`` (10,568 in step 12's first round on 146 cached figures, a ``/tmp`` logger)
+pool to 0.99 in the median, 11 beyond 1.5, the largest 1.64 (22 frames). What tells it is
+the one mate at home finding the piece better; a right move is kept from its marker only
+where its new mates pool beyond 1.5 (0.1 % of right pieces) and the wrong home fits better
+still. 12669's, 17888's and 18401's moves pool to 0.95, 1.01 and 0.97.
+
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations
