@@ -258,12 +258,14 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                     continue
                 home = model.judge(f, a)
                 off = _off(home)
-                weak = rules.MODEL_STRONGER and len(home) == 1 and (
-                    _fits(model.judge(f, a, fit=True)) or (rules.MODEL_UNSURE and not off))
+                # one mate judges it and it is not off: fitting (an off piece cannot fit
+                # its one mate), or, with MODEL_UNSURE, either way
+                weak = rules.MODEL_STRONGER and len(home) == 1 and not off and (
+                    rules.MODEL_UNSURE or _fits(model.judge(f, a, fit=True)))
                 if not (off or weak):
                     continue
                 change = _destination(model, vis, span, groups, f, a, off, max_step, fixed,
-                                      home_z=home[0][0] if weak and not off else None)
+                                      home_z=home[0][0] if weak else None)
                 if change is not None:
                     score = min(z for z, _ in home) if off else 0.0
                     changes.append((score, change))
