@@ -526,7 +526,7 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
     best = None
     for a, b, na, nb, moved in pending:
         ga, gb = groups[a], groups[b]
-        gain, veto = 0.0, False
+        gain, veto, net = 0.0, False, 0.0
         for body in pf:
             if a in body or b in body or a in lent[body] or b in lent[body]:
                 continue
@@ -537,6 +537,10 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
             if j[1]:
                 gain = max(gain, j[0])
             veto = veto or j[2]
+            net += j[0]
+        if rules.PAIR_NET_GAIN and net <= 0:
+            # the judging bodies together prefer the pieces as merged (2422)
+            continue
         if gain > 0 and not veto and (best is None or gain > best[0]):
             best = (gain, a, b, na, nb)
     return best
