@@ -95,6 +95,8 @@ PAIR_FRAMES = True  # step 8: last, spheres in a two-track body's frame with its
 PAIR_JOINT_RMS = 2.0   # ... that joint fitting within this x s0 (7375: 4.57, three joints off)
 PAIR_EVERY_LENDER = True  # ... a frame per body whose joint fits, not the best one's only
 PAIR_OVER_JUMPS = True    # ... also judging exchanges step 4's jumps would undo (14892)
+PAIR_OUTWEIGHS_JUMPS = True  # ... where its gain is above their jump cost in s0^2 (14892:
+#                              689 against 99; 21752: 887 against about 481,000)
 PAIR_FIT_RMS = 2.5   # ... judging within this x s0 rms, not VIRTUAL_FIT_RMS (17442: 2.13;
 #                      true neighbours in these frames: 74 % <= 2, 83 % <= 2.5)
 PAIR_NET_GAIN = True  # ... and only where the judging bodies' gains sum above zero (2422:

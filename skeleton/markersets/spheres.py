@@ -376,7 +376,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
             ga, gb = groups[a], groups[b]
             if len(ga) + len(gb) < 3:
                 continue
-            undone = set()             # alternatives step 4's jump test would undo
+            undone = {}        # alternatives step 4's jump test would undo -> their cost
             if rules.STEP8_JUMPS:
                 alts = _cross_alternatives(span, ga, gb)
                 js = _rigid_to_all(sd_of, ga + gb, rigid * s0)
@@ -385,7 +385,7 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                 if alts and js.size:
                     now_j, alt_j = _jumps(X, vis, ga, gb, alts, P[:, js],
                                           jump_margin * s0 ** 2)
-                    undone = {frozenset((frozenset(na), frozenset(nb)))
+                    undone = {frozenset((frozenset(na), frozenset(nb))): (c - now_j) / s0 ** 2
                               for (na, nb), c in zip(alts, alt_j)
                               if c >= now_j + jump_margin * s0 ** 2}
             done = set()
@@ -440,7 +440,8 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                 if gain > 0 and not veto and not late and (best is None or gain > best[0]):
                     best = (gain, a, b, na, nb)
                 if rules.PAIR_FRAMES and not veto:
-                    pending.append((a, b, na, nb, moved))
+                    # what step 4's jumps held against it, in s0^2 (PAIR_OUTWEIGHS_JUMPS)
+                    pending.append((a, b, na, nb, moved, undone.get(key, 0.0)))
                 if late:
                     continue
                 spread = np.array([r for r in spread if np.isfinite(r).all()]).reshape(-1, 2)
@@ -524,7 +525,7 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
         return None
     points = _points_in(pf, X)
     best = None
-    for a, b, na, nb, moved in pending:
+    for a, b, na, nb, moved, jumped in pending:
         ga, gb = groups[a], groups[b]
         gain, veto, net = 0.0, False, 0.0
         for body in pf:
@@ -540,6 +541,9 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
             net += j[0]
         if rules.PAIR_NET_GAIN and net <= 0:
             # the judging bodies together prefer the pieces as merged (2422)
+            continue
+        if rules.PAIR_OUTWEIGHS_JUMPS and gain <= jumped:
+            # its gain does not outweigh what the jumps cost (21752)
             continue
         if gain > 0 and not veto and (best is None or gain > best[0]):
             best = (gain, a, b, na, nb)
