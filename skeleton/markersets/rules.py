@@ -99,8 +99,6 @@ PAIR_OUTWEIGHS_JUMPS = True  # ... where its gain is above their jump cost in s0
 #                              689 against 99; 21752: 887 against about 481,000)
 PAIR_FIT_RMS = 2.5   # ... judging within this x s0 rms, not VIRTUAL_FIT_RMS (17442: 2.13;
 #                      true neighbours in these frames: 74 % <= 2, 83 % <= 2.5)
-PAIR_NET_GAIN = True  # ... and only where the judging bodies' gains sum above zero (2422:
-#                       +217 at 2.29 x s0 and +112 at 2.49 against -718 at 2.17)
 AGREEING_SPHERES = True  # step 8: last, an exchange that two or more bodies across one
 #                          joint prefer and none opposes, where no sphere decides (10034)
 AGREEING_SPHERES_GAIN = 10.0   # ... each of two by at least this drop in the residual sum of

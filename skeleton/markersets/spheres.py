@@ -161,6 +161,14 @@
    across one joint from the two-track body keeps a sphere within 2 x s0 in 73.8 % of 1310
    cases and within 2.5 in 83.1 % (median 1.35: these frames are noisier than a body of
    three's), a marker further away in 7.6 % and 9.7 % of 8694.
+   Since stop 70 a two-track body makes an exchange step 4's jumps would undo only where
+   its gain (in residual variances) is above their cost, the rise in the jumps over
+   ``s0`` squared (``PAIR_OUTWEIGHS_JUMPS``). Held-out figure 21752 (first run at stop
+   70): the first pieces of markers 33 and 34 (4-marker segment 11; 204.8 and 108.6 mm
+   from marker 35, both other markers seen over them) were exchanged on one body's frame
+   fitting at 2.04 x s0 with gain 887, where the jumps rise from 19.6 to 913,530 mm^2
+   (about 481,000 s0^2). Figure 2422 (right until 573fa35 raised the fit gate to 2.5):
+   gain 217 at 2.29 x s0 against about 9,400. 14892's exchange: 689 against 99.
 11. sphere joins (``_join_by_spheres``, ``SPHERE_JOINS``): where the steps above still end
    with more markers than the bound, a short piece may have no continuation that motion
    or pose alignment can judge (figure 8203, held out at stop 51: marker 21's first 11
@@ -508,7 +516,8 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
     best-fitting one's; neither a nor b in it or in the body lent) decide as step 8's
     bodies do (the moved pieces >= ``min_misfit`` residual sds off as merged and under half
     that exchanged, within ``PAIR_FIT_RMS`` x s0 rms; figure 17442's fit 2.13), none finding
-    the reverse; else None. Figure 12020 (held out at stop 60): marker 21's first 23
+    the reverse, and its gain above the jump cost each alternative carries (its sixth
+    item, in s0^2; ``PAIR_OUTWEIGHS_JUMPS``); else None. Figure 12020 (held out at stop 60): marker 21's first 23
     frames, a 2-marker leaf segment whose parent has two markers, joined to marker 20 (its
     partner, hidden then), 21 frames on; the continuity exchange gains 1.81, under its
     margin of 2. In the frame of the parent's two markers and its joint with the
@@ -527,7 +536,7 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
     best = None
     for a, b, na, nb, moved, jumped in pending:
         ga, gb = groups[a], groups[b]
-        gain, veto, net = 0.0, False, 0.0
+        gain, veto = 0.0, False
         for body in pf:
             if a in body or b in body or a in lent[body] or b in lent[body]:
                 continue
@@ -538,10 +547,6 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
             if j[1]:
                 gain = max(gain, j[0])
             veto = veto or j[2]
-            net += j[0]
-        if rules.PAIR_NET_GAIN and net <= 0:
-            # the judging bodies together prefer the pieces as merged (2422)
-            continue
         if rules.PAIR_OUTWEIGHS_JUMPS and gain <= jumped:
             # its gain does not outweigh what the jumps cost (21752)
             continue

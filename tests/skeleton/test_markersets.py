@@ -1757,6 +1757,23 @@ def test_pair_frames_judge_with_every_lender_over_the_jumps(monkeypatch):
     assert ids.count([10, 11]) == 2
 
 
+
+def test_pair_frames_outweigh_the_jumps_they_overrule(monkeypatch):
+    """Held-out figure 21752 (first run at stop 70): markers 33 and 34 of 4-marker segment
+    11 (204.8 and 108.6 mm from marker 35) start in fragments of 40 and 53 frames, merged
+    right by the linkage with both other markers of the segment seen. Step 8 exchanged
+    them on one two-track body's frame (fit 2.04 x s0, gain 887), over step 4's jumps,
+    which rise from 19.6 to 913,530 mm^2 exchanged (about 481,000 s0^2):
+    ``PAIR_OUTWEIGHS_JUMPS`` needs the gain above that. Figure 2422 (right until 573fa35
+    raised ``PAIR_FIT_RMS`` to 2.5): the last pieces of markers 0 and 1 (4-marker segment
+    0) exchanged with gain 217 (fit 2.29) against about 9,400."""
+    fig, _, ids = _right_then_off(monkeypatch, 21752, "PAIR_OUTWEIGHS_JUMPS", False)
+    assert ids.count([33, 34]) == 2
+    assert (fig.marker_segment == fig.marker_segment[33]).sum() == 4
+    monkeypatch.undo()
+    fig, _, ids = _right_then_off(monkeypatch, 2422, "PAIR_OUTWEIGHS_JUMPS", False)
+    assert ids.count([0, 1]) == 2
+
 def test_pair_frames_judge_within_their_own_fit_gate(monkeypatch):
     """Held-out figure 17442 (first run at stop 65): marker 35's first 19 frames (2-marker
     segment 13, under 2-marker segment 6) were merged onto marker 34, hidden then. Of every
