@@ -520,10 +520,10 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
     item, in s0^2; ``PAIR_OUTWEIGHS_JUMPS``); else None. Figure 12020 (held out at stop
     60): marker 21's first 23 frames, a 2-marker leaf segment whose parent has two
     markers, joined to marker 20 (its partner, hidden then), 21 frames on; the continuity
-    exchange gains 1.81, under its margin of 2. In the frame of the parent's two markers and its joint with the
-    grandparent (three markers) the piece sits 32.2 residual sds off as merged and 1.32
-    exchanged (the fit at 1.42 x s0): the two markers are 253 and 361 mm from their
-    joint."""
+    exchange gains 1.81, under its margin of 2. In the frame of the parent's two markers
+    and its joint with the grandparent (three markers) the piece sits 32.2 residual sds
+    off as merged and 1.32 exchanged (the fit at 1.42 x s0): the two markers are 253 and
+    361 mm from their joint."""
     if rules.PAIR_EVERY_LENDER:
         # a frame per lending body, seen in part too (as step 11's; 14892)
         pf, lent = _pair_frames(P, one, {**frames, **_partial_frames(P, frames)}, s0,
