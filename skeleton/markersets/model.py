@@ -98,13 +98,6 @@ the one mate at home finding the piece better; a right move is kept from its mar
 where its new mates pool beyond 1.5 (0.1 % of right pieces) and the wrong home fits better
 still. 12669's, 17888's and 18401's moves pool to 0.95, 1.01 and 0.97.
 
-Since stop 70 a piece no mate judges on its marker (none seen with it for
-``MODEL_MIN_FRAMES``) moves to the one other marker, free over its frames and paced, whose
-mates fit it clearly (``_fits``, pooled within ``MODEL_CLEAR_Z``; ``MODEL_UNJUDGED``); no
-exchanges. Held-out figure 21448 (stop 69): step 4 cut an id of markers 22 and 26 (2-marker
-segments 7 and 9) one piece early, leaving marker 22's 14 frames at 149-162 with marker 26,
-where no mate is seen with them; on marker 22 its one mate finds them 1.07 x.
-
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations
@@ -269,11 +262,10 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                 # its one mate), or, with MODEL_UNSURE, either way
                 weak = rules.MODEL_STRONGER and len(home) == 1 and not off and (
                     rules.MODEL_UNSURE or _fits(model.judge(f, a, fit=True)))
-                unjudged = rules.MODEL_UNJUDGED and not home
-                if not (off or weak or unjudged):
+                if not (off or weak):
                     continue
                 change = _destination(model, vis, span, groups, f, a, off, max_step, fixed,
-                                      home_z=home[0][0] if weak else None, unjudged=unjudged)
+                                      home_z=home[0][0] if weak else None)
                 if change is not None:
                     score = min(z for z, _ in home) if off else 0.0
                     changes.append((score, change))
@@ -290,12 +282,10 @@ def _pooled(js) -> float:
     return float(np.sqrt(sum(n * z * z for z, n in fit) / sum(n for _, n in fit)))
 
 
-def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z=None,
-                 unjudged=False):
+def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z=None):
     """The new groups after fragment ``f`` of marker ``a`` moves (or is exchanged) to the one
     marker that takes it, or None. ``home_z``: the z of the one mate that judges a piece
-    that is not off (``MODEL_STRONGER``); ``unjudged``: no mate judges the piece at home
-    (``MODEL_UNJUDGED``)."""
+    that is not off (``MODEL_STRONGER``)."""
     X = model.X
     found = []
     for b in range(len(groups)):
@@ -307,9 +297,6 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z
         js = model.judge(f, b, without=clash, fit=True)
         if off:
             if not _fits(js, half=True):
-                continue
-        elif unjudged:
-            if clash or not _fits(js) or _pooled(js) > rules.MODEL_CLEAR_Z:
                 continue
         elif len(js) < rules.MODEL_STRONG_MATES or not _fits(js):
             continue

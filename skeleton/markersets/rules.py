@@ -134,8 +134,6 @@ MODEL_STRONGER_EXCHANGES = True  # ... a piece fitting one mate is exchanged whe
 #                                  several, the pieces there fitting its marker, not theirs (18401)
 MODEL_STRONGER_CLEAR = True  # ... only where those mates find it clearly (their pooled rms z
 #                              within MODEL_CLEAR_Z) or better than its one mate does (20213)
-MODEL_UNJUDGED = True   # ... a piece no mate judges on its marker moves to the one free, paced
-#                         marker whose mates fit it clearly (pooled within MODEL_CLEAR_Z; 21448)
 MODEL_CLEAR_Z = 1.5     # ... (pieces on their right marker with two or more mates within
 #                         MODEL_FIT_Z: 11 of 10,568 beyond it, the largest 1.64; 20213's 1.64)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then

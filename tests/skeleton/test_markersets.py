@@ -1671,19 +1671,6 @@ def test_model_check_does_not_move_a_piece_where_its_mates_fit_it_less_clearly(m
     assert [8, 38] in ids
 
 
-
-def test_model_check_moves_a_piece_no_mate_judges_where_its_mates_fit_it(monkeypatch):
-    """Held-out figure 21448 (first run at stop 69): markers 22 and 26 (2-marker segments 7
-    and 9, 28.8 mm apart at frame 149) both break up; the linkage gave one id marker 22's
-    first 144 frames, its piece over frames 149-162 and marker 26's last two fragments, and
-    step 4 cut that id after the first fragment, leaving the 14-frame piece with marker 26.
-    No mate is seen with it there for ``MODEL_MIN_FRAMES``, so step 12 never judged it. On
-    marker 22, free over those frames and paced, its one mate finds it 1.07 x the robust sd
-    over 14 frames; ``MODEL_UNJUDGED`` moves it there."""
-    fig, _, ids = _right_then_off(monkeypatch, 21448, "MODEL_UNJUDGED", False)
-    assert [22, 26] in ids
-    assert (fig.marker_segment == fig.marker_segment[22]).sum() == 2
-
 def test_sphere_joins_judge_in_a_two_marker_bodys_frame(monkeypatch):
     """Figure 14980 (first run at stop 62, wrong until stop 64): marker 33's first 11
     frames (2-marker hinge segment 11, its mate hidden then) were left an id of their own,
@@ -1828,8 +1815,11 @@ def test_model_check_moves_an_off_piece_where_half_its_mates_fit(monkeypatch):
     22.4 x). On marker 17 its two segment mates find the piece 0.9 and 1.3 x off, two
     markers of the hinge parent (one body with marker 17 by chance, robust sds 1.43 and 1.17
     x s0) 3.7 and 5.1: a median of 2.5, over ``MODEL_FIT_Z``. ``MODEL_HALF_FITS`` moves an
-    off piece where half its mates, two at least, fit it; without it the piece stays."""
-    fig, _, ids = _right_then_off(monkeypatch, 18074, "MODEL_HALF_FITS", False)
+    off piece where half its mates, two at least, fit it; without it the piece stays.
+    (Since stop 70 step 8's ``PAIR_OUTWEIGHS_JUMPS`` keeps the piece off marker 15 too:
+    off in the failure case.)"""
+    fig, _, ids = _right_then_off(monkeypatch, 18074, "MODEL_HALF_FITS", False,
+                                  failure_also={"PAIR_OUTWEIGHS_JUMPS": False})
     assert [15, 17] in ids and [17] in ids
     seg = fig.marker_segment
     assert seg[15] == seg[17]
