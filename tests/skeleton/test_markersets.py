@@ -1744,7 +1744,6 @@ def test_pair_frames_judge_with_every_lender_over_the_jumps(monkeypatch):
     assert ids.count([10, 11]) == 2
 
 
-
 def test_pair_frames_outweigh_the_jumps_they_overrule(monkeypatch):
     """Held-out figure 21752 (first run at stop 70): markers 33 and 34 of 4-marker segment
     11 (204.8 and 108.6 mm from marker 35) start in fragments of 40 and 53 frames, merged
@@ -1760,6 +1759,7 @@ def test_pair_frames_outweigh_the_jumps_they_overrule(monkeypatch):
     monkeypatch.undo()
     fig, _, ids = _right_then_off(monkeypatch, 2422, "PAIR_OUTWEIGHS_JUMPS", False)
     assert ids.count([0, 1]) == 2
+
 
 def test_pair_frames_judge_within_their_own_fit_gate(monkeypatch):
     """Held-out figure 17442 (first run at stop 65): marker 35's first 19 frames (2-marker
