@@ -125,7 +125,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import rules
-from .judges import _body_sds, _jumps, _misfit, _turning
+from .judges import _body_sds, _fits, _jumps, _misfit, _turning
 from .tracks import (
     _cross_alternatives, _fragment_sd, _paced, _rigid_to_all, _sd_to, _spans, _tracks
 )
@@ -331,6 +331,27 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                     return True
             return False
 
+        def placed_better(alt, other, ex):
+            """every fragment the exchange ``alt`` ((na, nb)) puts on another marker than
+            ``other`` does fits there (``_fits`` of ``_misfit`` against the fragments both
+            put on that marker) and, where ``other`` puts it, has no judge or is above the
+            jump bound on every one (``PIECES_BREAK_TIES``; figure 21448: a 14-frame piece
+            that one judge fits at 0.14 x the bound, and none sees on the marker the voters
+            put it on, gaining 3.504 against 3.490)"""
+            bound = jump_margin * s0 ** 2
+            moved = set(alt[0]) ^ set(other[0])
+            for f in moved:
+                g = alt[0] if f in alt[0] else alt[1]
+                h = other[0] if f in other[0] else other[1]
+                on_alt = _misfit(X, vis, P, sd_of, f, [e for e in g if e not in moved], ex,
+                                 rigid * s0, bound, voter_frames)
+                on_other = _misfit(X, vis, P, sd_of, f, [e for e in h if e not in moved], ex,
+                                   rigid * s0, bound, voter_frames)
+                if not (_fits(on_alt, bound)
+                        and (on_other.size == 0 or on_other.min() > bound)):
+                    return False
+            return bool(moved)
+
         bad = [m for m, g in enumerate(groups) if any(
             part[f].size and np.nanmax(_sd_to(P[:, part[f]], P[:, m], min_frames)) > rigid * s0
             for f in g if f in part)]
@@ -362,7 +383,6 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                         sdq = _sd_to(P[:, q], t, min_frames)
                         keep[q[sdq <= rigid * s0]] = True
                 now = score(groups[a], P[:, a], q, keep) + score(groups[b], P[:, b], q, keep)
-                jumps, turns = None, False
                 cands = []              # (na, nb, gain, judged without moving a voter in)
                 for na, nb in alts:
                     judged = checked(na, groups[a], ex) and checked(nb, groups[b], ex)
@@ -376,6 +396,31 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                     gain = now - score(na, ta, q, keep) - score(nb, tb, q, keep)
                     cands.append((na, nb, gain, judged))
                 clear = _clear_voter_moves(cands, margin) if rules.CLEAR_VOTER_MOVES else set()
+                state = {}
+
+                def allowed(na, nb):
+                    """no veto (module docstring) stops the exchange (na, nb)"""
+                    # never an exchange that step 4's jump test would undo
+                    if "jumps" not in state:
+                        state["jumps"] = _jumps(X, vis, groups[a], groups[b], alts,
+                                                P[:, strict(a, b)], jump_margin * s0 ** 2,
+                                                rules.JUMPS_PER_MARKER)
+                    now_j, alt_j = state["jumps"]
+                    if alt_j[alts.index((na, nb))] >= now_j + jump_margin * s0 ** 2:
+                        return False
+                    if "turns" not in state:
+                        state["turns"] = turning_judged(a, b)
+                    turns = state["turns"]
+                    if turns is not None and _turning(X, vis, na, nb) >= turns + turn_margin:
+                        return False
+                    if body_veto and (displaced(groups[a], na, groups[b], ex)
+                                      or displaced(groups[b], nb, groups[a], ex)):
+                        return False
+                    return not (rules.NO_NEW_MISFITS
+                                and (misfit_made(groups[a], na, groups[b], ex)
+                                     or misfit_made(groups[b], nb, groups[a], ex)))
+
+                here = None
                 for i, (na, nb, gain, judged) in enumerate(cands):
                     if not (judged or i in clear):
                         continue
@@ -385,27 +430,19 @@ def _repair_cross(X, groups, min_frames, s0, margin, rigid=3.0, voter_frames=100
                             and _onto_bodies(vis, P, sd_of, groups[a], na, groups[b], nb, ex,
                                              one_body * s0, voter_frames)):
                         continue
-                    if best is None or gain > best[0]:
-                        # never an exchange that step 4's jump test would undo
-                        if jumps is None:
-                            js = strict(a, b)
-                            jumps = _jumps(X, vis, groups[a], groups[b], alts, P[:, js],
-                                           jump_margin * s0 ** 2, rules.JUMPS_PER_MARKER)
-                        now_j, alt_j = jumps
-                        if alt_j[alts.index((na, nb))] >= now_j + jump_margin * s0 ** 2:
-                            continue
-                        if turns is False:
-                            turns = turning_judged(a, b)
-                        if turns is not None and (_turning(X, vis, na, nb)
-                                                  >= turns + turn_margin):
-                            continue
-                        if body_veto and (displaced(groups[a], na, groups[b], ex)
-                                          or displaced(groups[b], nb, groups[a], ex)):
-                            continue
-                        if rules.NO_NEW_MISFITS and (misfit_made(groups[a], na, groups[b], ex)
-                                               or misfit_made(groups[b], nb, groups[a], ex)):
-                            continue
-                        best = (gain, a, b, na, nb)
+                    if (best is None or gain > best[0]) and allowed(na, nb):
+                        best = here = (gain, a, b, na, nb)
+                if here is not None and here[0] >= margin and rules.PIECES_BREAK_TIES:
+                    # the voters cannot tell exchanges within the margin apart: the pieces
+                    # they place differently go where a judge fits them (figure 21448)
+                    for i in sorted(range(len(cands)), key=lambda i: -cands[i][2]):
+                        na, nb, gain, judged = cands[i]
+                        if (margin <= gain and here[0] - margin < gain
+                                and (na, nb) != here[3:] and (judged or i in clear)
+                                and placed_better((na, nb), here[3:], ex)
+                                and allowed(na, nb)):
+                            best = (here[0], a, b, na, nb)
+                            break
         if best is None:
             break
         _, a, b, na, nb = best

@@ -49,6 +49,8 @@ BODY_CONFIRMS = True     # step 4b: an exchange gaining less than the margin, by
 BODY_CONFIRMS_FRACTION = 0.5   # this x the margin, where every moved piece leaves a body it
 #                                is off for one it moves as one with (figure 3464)
 NO_NEW_MISFITS = True    # step 4b: nor one that makes a fitting piece a misfit (figure 4430)
+PIECES_BREAK_TIES = True  # step 4b: of exchanges within the margin of the best, one that puts
+#                           the pieces they differ on where a judge fits them (21448)
 
 UNJUDGED_MOVES = True   # step 4c: a piece no judge sees on its own marker moves where it fits
 UNJUDGED_EVIDENCE = 20  # ... on judges that see it for this many frames in all
