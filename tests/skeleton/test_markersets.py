@@ -1761,6 +1761,21 @@ def test_pair_frames_outweigh_the_jumps_they_overrule(monkeypatch):
     assert ids.count([0, 1]) == 2
 
 
+def test_pieces_break_the_voters_ties(monkeypatch):
+    """Held-out figure 21448 (first run at stop 69): steps 1-3 merged marker 22's first
+    fragment and its 14-frame piece (frames 149-162) with marker 26's last two (2-marker
+    segments 7 and 9). Step 4b's voters gave marker 22 its first fragment back (gain 3.504)
+    or that and the piece (3.490): within the margin of 1 they cannot tell the two apart.
+    One judge fits the piece on marker 22 (0.14 x the jump bound over 14 frames) and none
+    sees it on marker 26, so ``PIECES_BREAK_TIES`` takes the second. Without it the piece
+    stays on marker 26, where no later step has a judge that sees it for long enough."""
+    fig, _, ids = _right_then_off(monkeypatch, 21448, "PIECES_BREAK_TIES", False)
+    assert [22, 26] in ids
+    seg = fig.marker_segment
+    assert seg[22] != seg[26]
+    assert (seg == seg[22]).sum() == 2 and (seg == seg[26]).sum() == 2
+
+
 def test_pair_frames_judge_within_their_own_fit_gate(monkeypatch):
     """Held-out figure 17442 (first run at stop 65): marker 35's first 19 frames (2-marker
     segment 13, under 2-marker segment 6) were merged onto marker 34, hidden then. Of every
