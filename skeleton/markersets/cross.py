@@ -96,6 +96,19 @@ groups, re-run with the rule off wherever ``_onto_bodies`` confirmed an exchange
 right; it confirmed one on 1620, 3224, 3464, 4668, 4855, 5430 and 10847 and changed the
 groups of 3464 only (the other six merged the same groups with it off).
 
+The voters cannot tell apart two exchanges whose gains lie within the margin of each other
+(``PIECES_BREAK_TIES``, stop 71): a short piece barely moves a track's sd. Of the exchanges
+of the best pair gaining within the margin of the best (and the margin at least), unvetoed,
+the first by gain that puts every piece the two place differently where step 4c's judges
+fit it (``_fits`` of ``_misfit`` against the fragments both put on that marker) and where
+the best puts it has no judge or is above the bound on every one, is made in its place.
+Held-out figure 21448: the linkage merged marker 22's first fragment (frames 0-143) and its
+14-frame piece (149-162) with marker 26's last two (2-marker segments 7 and 9); the voters
+gave marker 22 the first fragment back (gain 3.504) or it and the piece (3.490). One judge
+fits the piece on marker 22 (0.14 x the bound), none sees it on marker 26, where no later
+step could move it: step 4c and step 12 move a piece on one judge's 14 frames nowhere
+(``UNJUDGED_EVIDENCE``; figure 556 is right only because they do not).
+
 Step 4b (stop 16), ``bench_markersets.py`` (the failures of stop 15's code: 1-119: 28, 30,
 85, 93, 119; 120-199: 131, 135, 157, 166, 186, 188, 195; 200-279: 221, 225, 227, 242,
 256, 261 - 262 of 280 merged). A first form (each track against its longest fragment's
