@@ -97,7 +97,8 @@ miss cannot veto a pair: one marker's miss reached 8.7 mm per frame of gap on fi
 Lost: 28 (the rescued merges change the tracks the loose pass aligns on: a 14-frame
 fragment then lies 5.5 mm, not 66 mm, from another marker of its segment across a 7-frame
 gap, and joins it). Still failing: 30, 85, 93 (cross-segment merges; the right continuations
-miss by more than 10 mm or across more than 45 frames) and 119 (two markers of a segment exchanged, not repaired). The
+miss by more than 10 mm or across more than 45 frames) and 119 (two markers of a segment
+exchanged, not repaired). The
 rescue alone also left one marker as two ids in figures 23, 41 and 51 (changed alignments
 put the pieces above ``max_distance_m``); the loose pass of step 5 joins them, and alone
 (``continuity_m=0``) changes no figure (109 of 120). Merge time x1.07 of steps 1-3 alone

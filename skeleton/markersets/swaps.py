@@ -25,7 +25,8 @@
    The best exchange is made when it lowers the sum by ``jump_margin`` times the measured
    sd squared (10.8: chi-square with one degree of freedom at p = 0.001; not tuned).
    A pair without segment partners (a segment with two markers, or whose others are not
-   seen with them) is judged instead by the direction from one marker to the other, which a swap flips. The cost is the sum,
+   seen with them) is judged instead by the direction from one marker to the other, which a
+   swap flips. The cost is the sum,
    over the changes of fragment in either marker (on their common frames), of the angle
    between the mean direction over the 5 common frames before and the 5 after; the best
    exchange is made when it turns at least ``turn_margin`` (60 deg) less. A right
