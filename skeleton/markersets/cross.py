@@ -84,9 +84,8 @@
 A body confirms an exchange that gains less than the margin (``BODY_CONFIRMS``, stop 57):
 from a gain of ``BODY_CONFIRMS_FRACTION`` (0.5) x the margin it is judged like one above
 it where every fragment it moves has, among the tracks moving as one body with the fragments
-its old
-marker keeps (sd <= 1.5 x s0 over >= 100 frames, ``_body_sds``), one it is further than
-1.5 x s0 from, and is within 1.5 x s0 of every such track of its new marker's kept
+its old marker keeps (sd <= 1.5 x s0 over >= 100 frames, ``_body_sds``), one it is further
+than 1.5 x s0 from, and is within 1.5 x s0 of every such track of its new marker's kept
 fragments. Figure 3464 (right until stop 53's ``RIGID_SOMEWHERE`` dropped a partner): the
 linkage gave marker 29's last 49 frames (segment 10) to marker 55 of its child segment 18,
 and marker 55's last 17 to marker 29, while the joint between barely moved; the right
