@@ -173,8 +173,17 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                                         one_body * s0, bound, voter_frames)):
                     off = False          # its body's tracks disagree (figure 11934)
                 unjudged = rules.UNJUDGED_MOVES and miss.size == 0 and not off
+                # an off-body piece most of whose judges at home fit it (two at least)
+                held = (rules.HOME_MAJORITY_STAYS and off and len(at_home) >= 2
+                        and 2 * len(at_home) > miss.size)
                 if not (miss.size and miss.min() > bound) and not off and not unjudged:
                     continue
+                def as_held(kept, b):
+                    # a held piece moves only where as many judges fit it as at home (22706)
+                    return not held or _misfit(X, vis, P, sd_of, f, kept, [a, b], rigid * s0,
+                                               bound, voter_frames,
+                                               drift=drift).size >= len(at_home)
+
                 def fits_in(b):
                     if unjudged:
                         return _placed(_misfit(X, vis, P, sd_of, f, groups[b], [a, b],
@@ -183,8 +192,9 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                     if not _fits_on(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
                                     one_body * s0, bound, voter_frames, drift=drift):
                         return False
-                    return _tells(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0, bound,
-                                  voter_frames, at_home)
+                    return as_held(groups[b], b) and _tells(
+                        X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0, bound,
+                        voter_frames, at_home)
 
                 free = [b for b in range(M) if b != a and not (seen[b] & vis[:, f]).any()
                         and _paced(X, span, groups[b] + [f], max_step)]
@@ -217,6 +227,8 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                     swaps = _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid * s0,
                                               one_body * s0, bound, voter_frames, max_step,
                                               at_home)
+                    swaps = [w for w in swaps
+                             if as_held([h for h in w[2] if h in groups[w[0]]], w[0])]
                     if len(swaps) == 1:
                         moves.append((key, f, a, swaps[0][0], swaps[0][1:]))
                     elif (rules.CONTINUITY_OPEN and not swaps and not at_home and miss.size

@@ -20,6 +20,8 @@ ONE_SPLIT = True     # step 7 takes the one split where the fragments split only
 PARTNER_SPLITS = True   # ... and judges ids with a segment partner too, by turns and jumps
 
 CONTINUITY_JOINS = True  # step 7b: markers left as two ids are joined by motion continuity
+CHAIN_JOINS = True  # ... and a marker left as three or more, where their joins are each
+#                     other's only rivals (figure 22748)
 JOINS_AFTER_EXCHANGES = True  # step 9: and again where step 8 exchanged (figure 4881)
 
 SPLIT_JOINS = True  # step 10: a marker holding two others' pieces is split and joined
@@ -79,6 +81,8 @@ DRIFT_JUDGES = True   # steps 4c and 10: on the marker a piece would move to, a 
 #                       drifts across a joint allows for its drift (figures 12450, 12460)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
 #                          also find the piece on its own (figure 4083)
+HOME_MAJORITY_STAYS = True  # step 4c: an off-body piece most of whose judges at home fit it
+#                             (two at least) moves only where as many judges fit it (22706)
 
 ORDER_SD_WEIGHT = 1.0  # step 3's order: the whole sd of the least rigid partner (5991)
 LOOSE_BY_CONTINUITY = True  # step 3's loose passes: order by max(distance, scaled miss)

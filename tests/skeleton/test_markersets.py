@@ -1885,3 +1885,58 @@ def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
     moved = _Model(X, vis, groups).judge(1, 0)
     assert _off(moved) and not _fits(moved)
     assert min(z for z, _ in moved) > rules.MODEL_OFF_Z
+
+
+def test_an_off_body_piece_most_home_judges_fit_stays(monkeypatch):
+    """Held-out figure 22706 (first run at stop 71): marker 3's last fragment (frames
+    334-399, 3-marker segment 1) is off a track moving as one body with its marker, but two
+    of its three judges there fit it (0.53 and 0.38 x the jump bound; the third 13.3 x).
+    Marker 36's first piece (frames 0-36, 2-marker segment 12), left alone once step 4c
+    took marker 35's piece off it, was free over those frames and one judge fitted the
+    fragment there. ``HOME_MAJORITY_STAYS`` keeps such a piece home unless as many judges
+    fit it where it would go; without it step 4c's exchange gives it to marker 36."""
+    fig, _, ids = _right_then_off(monkeypatch, 22706, "HOME_MAJORITY_STAYS", False)
+    assert [3, 36] in ids
+    seg = fig.marker_segment
+    assert (seg == seg[3]).sum() == 3 and (seg == seg[36]).sum() == 2
+
+
+def test_a_marker_left_as_three_ids_is_joined_as_a_chain(monkeypatch):
+    """Held-out figure 22748 (first run at stop 71): marker 16 of a 2-marker segment was
+    left as three ids (frames 0-320, 346-356, 373-399). Step 7b's continuity joins among
+    them cost 1.50, 2.45 and 3.12, so no join of two of them is clear of the others by the
+    margin (4), and the next join of any costs 14.14. ``CHAIN_JOINS`` joins all three."""
+    fig, _, ids = _right_then_off(monkeypatch, 22748, "CHAIN_JOINS", False)
+    assert ids.count([16]) == 3
+    assert (fig.marker_segment == fig.marker_segment[16]).sum() == 2
+
+
+def test_chain_joins_only_ids_that_can_all_be_one_marker():
+    """``joins._chain`` on join costs alone (every id's own cost 0, joining all of them
+    costing the sum of the cheapest joins): three ids joining each other at 1.5, 2.5 and
+    3.1 and anything else at 14 or more are one chain; not where two of them share a frame
+    (infinite cost), nor where an outside join is within the margin of an id's cheapest,
+    nor with fewer ids above the bound than the chain would take away."""
+    from skeleton.markersets import rules
+    from skeleton.markersets.joins import _chain
+    inf = np.inf
+    C = np.array([[inf, 1.5, 2.5, 14.0, inf],
+                  [1.5, inf, 3.1, 20.0, 15.0],
+                  [2.5, 3.1, inf, inf, 16.0],
+                  [14.0, 20.0, inf, inf, inf],
+                  [inf, 15.0, 16.0, inf, inf]])
+    groups = [[0], [1], [2], [3], [4]]
+    own = [0.0] * 5
+    assert rules.CONTINUITY_MARGIN == 4.0
+
+    def cost(g):
+        return 4.0 if len(g) == 3 else 0.0
+    assert _chain(C, cost, groups, own, 2) == {0, 1, 2}
+    assert _chain(C, cost, groups, own, 1) is None          # only one id above the bound
+    assert _chain(C, lambda g: 9.0, groups, own, 2) is None  # the whole join costs too much
+    D = C.copy()
+    D[1, 2] = D[2, 1] = inf                                  # ids 1 and 2 share a frame
+    assert _chain(D, cost, groups, own, 2) is None
+    E = C.copy()
+    E[0, 3] = E[3, 0] = 5.0                                  # id 0 joins id 3 nearly as well
+    assert _chain(E, cost, groups, own, 2) is None
