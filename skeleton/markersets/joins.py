@@ -21,6 +21,13 @@ Steps 5 and 9 run the linkage (``linkage._merge_pass``) again from the package's
    hidden across the gap has no pose to align on and no partner to join by (figure 339:
    marker 39's last 62 frames, 37 frames after the rest, its partner seen in 8 of them:
    1.93, the next join 7.96; 1371: marker 33's last 10 frames, 1.12 against 7.80).
+   A marker left as three or more ids has no such join: its ids' rivals are each other.
+   Where no join is clear, the ids linked by joins within the margin are joined all at
+   once when every two of them could join, each one's joins outside cost the margin more
+   than its cheapest inside, the whole join costs at most the margin per join and it
+   leaves no fewer markers than the bound (``CHAIN_JOINS``, stop 72, ``_chain``; held-out
+   figure 22748: marker 16 of a 2-marker segment left as ids over frames 0-320, 346-356
+   and 373-399, joins 1.50, 2.45 and 3.12 among them, the next 14.14).
 9. step 8 can leave a marker as two ids, as the swap repair can (step 5): in figure 1833
    (held out, first run at stop 34) the linkage merged marker 17 right, the swap repair
    moved its first fragment out and a piece of marker 15 (same segment) in, and step 8

@@ -111,6 +111,14 @@
    marker 28 of another segment, 1.18 and 7.79 x the bound off both its segment partners;
    on marker 8 the segment partner fitted the piece at 0.00, but a marker of the child
    segment, at distance sd 2.64 x s0, found it 13.7 x off (0.17 with the allowance).
+   An off-body piece most of whose judges at home fit it (two at least, more than half)
+   moves, or is exchanged, only onto a marker where at least as many judges fit it
+   (``HOME_MAJORITY_STAYS``, stop 72; step 12's ``MODEL_HALF_FITS`` asks the same of its
+   mates). Held-out figure 22706 (stop 71): marker 3's last 66 frames (3-marker segment
+   1), off a one-body track of marker 3 and 13.3 x the bound off one judge, but at 0.53
+   and 0.38 x on the other two, went by a one-sided exchange onto marker 36's first piece
+   (2-marker segment 12), free once step 4c had taken marker 35's piece off it, where one
+   judge fitted it over 19 frames.
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
