@@ -858,9 +858,11 @@ def test_a_piece_its_judges_and_a_body_track_hold_stays_on_its_marker(monkeypatc
     joint between moved while marker 4 was hidden. Off its body so, step 4c moved it to
     marker 42, two joints away, whose one judge fitted it. Where every judge at home fits
     the piece and a one-body track there holds it too, it now stays
-    (``SPLIT_BODY_STAYS``); without it marker 42 takes it."""
+    (``SPLIT_BODY_STAYS``); without it marker 42 takes it. Stop 72's
+    ``HOME_MAJORITY_STAYS`` keeps it home too (both judges at home fit it, one on marker
+    42), so the failure is set up with that off as well."""
     fig, _, ids = _right_then_off(monkeypatch, 11934, "SPLIT_BODY_STAYS", False,
-                                  failure_also=NO_STEP12)
+                                  failure_also={**NO_STEP12, "HOME_MAJORITY_STAYS": False})
     assert [4, 42] in ids
     assert fig.marker_segment[4] != fig.marker_segment[42]
 
