@@ -1066,10 +1066,13 @@ def test_marker_left_as_two_ids_by_step_8_merges_again(monkeypatch):
     of long gaps, step 3's ``defer_gap``, avoids the state; it is shown without it. Since
     stop 42 step 4c keeps the first fragment where it is, its one judge there finding it
     on marker 17 too (``TELLING_JUDGES``), and since stop 57 its judges and a one-body
-    track there holding it (``SPLIT_BODY_STAYS``); it is shown with both rules off.)"""
+    track there holding it (``SPLIT_BODY_STAYS``), and since stop 72 its judges at home
+    fitting it in majority (``HOME_MAJORITY_STAYS``); it is shown with the three rules
+    off.)"""
     import skeleton.markersets as ms
     monkeypatch.setattr(ms.rules, "TELLING_JUDGES", False)
     monkeypatch.setattr(ms.rules, "SPLIT_BODY_STAYS", False)
+    monkeypatch.setattr(ms.rules, "HOME_MAJORITY_STAYS", False)
     fig, mo, X, owner = _bench_figure(1833)
     after8 = []
     step8 = ms._sphere_exchanges
