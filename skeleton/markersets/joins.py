@@ -180,19 +180,18 @@ def _chain(C, cost, groups, own, spare):
     cheapest such chain, or None. Figure 22748 (held out, stop 71): marker 16 of a
     2-marker segment left as ids over frames 0-320, 346-356 and 373-399, joins 1.50, 2.45
     and 3.12 among them, the next 14.14."""
-    M = len(C)
     margin = rules.CONTINUITY_MARGIN
     n, label = connected_components(csr_matrix(C <= margin), directed=False)
-    inside = ~np.eye(M, dtype=bool)
     best = None
     for c in range(n):
         K = np.flatnonzero(label == c)
         if len(K) < 3 or len(K) - 1 > spare:
             continue
         sub = C[np.ix_(K, K)]
-        if not np.isfinite(sub[inside[:len(K), :len(K)]]).all():
+        self_ = np.eye(len(K), dtype=bool)
+        if not np.isfinite(sub[~self_]).all():
             continue
-        near = np.where(np.eye(len(K), dtype=bool), np.inf, sub).min(1)
+        near = np.where(self_, np.inf, sub).min(1)
         out = np.delete(C[K], K, axis=1)
         if not (out >= near[:, None] + margin).all():
             continue

@@ -186,6 +186,7 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                         and 2 * len(at_home) > miss.size)
                 if not (miss.size and miss.min() > bound) and not off and not unjudged:
                     continue
+
                 def as_held(kept, b):
                     # a held piece moves only where as many judges fit it as at home (22706)
                     return not held or _misfit(X, vis, P, sd_of, f, kept, [a, b], rigid * s0,
