@@ -103,6 +103,8 @@ PAIR_EVERY_LENDER = True  # ... a frame per body whose joint fits, not the best 
 PAIR_OVER_JUMPS = True    # ... also judging exchanges step 4's jumps would undo (14892)
 PAIR_OUTWEIGHS_JUMPS = True  # ... where its gain is above their jump cost in s0^2 (14892:
 #                              689 against 99; 21752: 887 against about 481,000)
+PAIR_OUTWEIGHS_BODIES = True  # ... and above the drop step 8's own bodies' spheres lose by
+#                               it, summed (24196: 56.3 against 155.4)
 PAIR_FIT_RMS = 2.5   # ... judging within this x s0 rms, not VIRTUAL_FIT_RMS (17442: 2.13;
 #                      true neighbours in these frames: 74 % <= 2, 83 % <= 2.5)
 AGREEING_SPHERES = True  # step 8: last, an exchange that two or more bodies across one

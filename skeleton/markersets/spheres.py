@@ -448,8 +448,10 @@ def _sphere_exchanges(X, groups, min_frames, body_sd=1.5, body_frames=100, fit_r
                 if gain > 0 and not veto and not late and (best is None or gain > best[0]):
                     best = (gain, a, b, na, nb)
                 if rules.PAIR_FRAMES and not veto:
-                    # what step 4's jumps held against it, in s0^2 (PAIR_OUTWEIGHS_JUMPS)
-                    pending.append((a, b, na, nb, moved, undone.get(key, 0.0)))
+                    # what step 4's jumps held against it, in s0^2 (PAIR_OUTWEIGHS_JUMPS),
+                    # and what these bodies' spheres did (PAIR_OUTWEIGHS_BODIES)
+                    against = -sum(g for g in gains if g < 0)
+                    pending.append((a, b, na, nb, moved, undone.get(key, 0.0), against))
                 if late:
                     continue
                 spread = np.array([r for r in spread if np.isfinite(r).all()]).reshape(-1, 2)
@@ -534,7 +536,7 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
         return None
     points = _points_in(pf, X)
     best = None
-    for a, b, na, nb, moved, jumped in pending:
+    for a, b, na, nb, moved, jumped, against in pending:
         ga, gb = groups[a], groups[b]
         gain, veto = 0.0, False
         for body in pf:
@@ -549,6 +551,9 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
             veto = veto or j[2]
         if rules.PAIR_OUTWEIGHS_JUMPS and gain <= jumped:
             # its gain does not outweigh what the jumps cost (21752)
+            continue
+        if rules.PAIR_OUTWEIGHS_BODIES and gain <= against:
+            # nor what the bodies of three or more tracks lose by it (24196)
             continue
         if gain > 0 and not veto and (best is None or gain > best[0]):
             best = (gain, a, b, na, nb)

@@ -1771,6 +1771,20 @@ def test_pair_frames_outweigh_the_jumps_they_overrule(monkeypatch):
     assert ids.count([0, 1]) == 2
 
 
+def test_pair_frames_outweigh_the_bodies_that_oppose_them(monkeypatch):
+    """Held-out figure 24196 (first run at stop 73): marker 3's first 10 frames (2-marker
+    segment 1, 91 mm from marker 2, which is hidden until frame 30) were merged right by the
+    linkage. Step 8's two-track frame of segment 2 (a sibling of segment 1, with a joint
+    lent by segment 3) moved them onto marker 2 with gain 56.3 (fit 1.54 x s0); the frame of
+    segment 4, segment 1's child, loses 152.8 by it and another body 2.7, but neither
+    decides, so neither vetoed. Continuity took the piece back in the next round (3.29) and
+    the pair frame moved it again in the third. ``PAIR_OUTWEIGHS_BODIES`` needs a pair
+    exchange's gain above the sum step 8's own bodies lose by it."""
+    fig, _, ids = _right_then_off(monkeypatch, 24196, "PAIR_OUTWEIGHS_BODIES", False)
+    assert [2, 3] in ids and [3] in ids
+    assert fig.marker_segment[2] == fig.marker_segment[3]
+    assert (fig.marker_segment == fig.marker_segment[2]).sum() == 2
+
 def test_pieces_break_the_voters_ties(monkeypatch):
     """Held-out figure 21448 (first run at stop 69): steps 1-3 merged marker 22's first
     fragment and its 14-frame piece (frames 149-162) with marker 26's last two (2-marker
