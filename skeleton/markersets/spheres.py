@@ -519,7 +519,9 @@ def _pair_exchange(X, P, one, frames, s0, groups, pending, min_misfit) -> tuple 
     bodies do (the moved pieces >= ``min_misfit`` residual sds off as merged and under half
     that exchanged, within ``PAIR_FIT_RMS`` x s0 rms; figure 17442's fit 2.13), none finding
     the reverse, and its gain above the jump cost each alternative carries (its sixth
-    item, in s0^2; ``PAIR_OUTWEIGHS_JUMPS``); else None. Figure 12020 (held out at stop
+    item, in s0^2; ``PAIR_OUTWEIGHS_JUMPS``) and above what the bodies of three or more
+    tracks that judged it lose by it, summed (its seventh; ``PAIR_OUTWEIGHS_BODIES``,
+    24196: 56.3 against 155.4); else None. Figure 12020 (held out at stop
     60): marker 21's first 23 frames, a 2-marker leaf segment whose parent has two
     markers, joined to marker 20 (its partner, hidden then), 21 frames on; the continuity
     exchange gains 1.81, under its margin of 2. In the frame of the parent's two markers
