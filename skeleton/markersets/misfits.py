@@ -25,7 +25,16 @@
    them as from the rest of marker 1 (0.01 and 0.58 x the bound) and a marker of the next
    segment, rigid to both by the sd bound, 3.55 x the bound off; figures 403 and 3016,
    the first pieces of a marker given to another segment's marker, whose partners are not
-   rigid to them). A misfit that no marker free over its frames takes is exchanged
+   rigid to them). With fewer frames of evidence it moves to a free marker where every
+   judge fits it only when its motion continues there better than on its own marker
+   (``UNJUDGED_CONTINUES``, stop 74, ``_continues_best``: of one such marker, when it raises
+   that marker's continuity cost less than taking it off its own lowers that; of several,
+   the clear best). Held-out figure 24267 (stop 73): marker 23's last 16 frames (2-marker
+   segment 7, its partner seen) sat at the end of marker 3 (2-marker segment 1, hidden from
+   4 frames before, its partner from 10 before); on marker 23 the partner fitted them at
+   0.08 x the bound over 16 frames, and the piece raised marker 23's cost by 0.60 where
+   taking it off marker 3 lowered that by 5.80 (figure 556's piece: 5.65 against 1.94,
+   it stays). A misfit that no marker free over its frames takes is exchanged
    (``MISFIT_EXCHANGES``): the one overlap-free exchange of a run of fragments between its
    marker and another that moves it there and after which every moved fragment fits the
    fragments its new marker kept (``_fits``, and off no one-body track) is made (figure
@@ -193,11 +202,14 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                                                bound, voter_frames,
                                                drift=drift).size >= len(at_home)
 
+                judged_on = {}    # an unjudged piece's judges on each free marker
+
                 def fits_in(b):
                     if unjudged:
-                        return _placed(_misfit(X, vis, P, sd_of, f, groups[b], [a, b],
+                        judged_on[b] = _misfit(X, vis, P, sd_of, f, groups[b], [a, b],
                                                rigid * s0, bound, voter_frames,
-                                               with_frames=True), bound)
+                                               with_frames=True)
+                        return _placed(judged_on[b], bound)
                     if not _fits_on(X, vis, P, sd_of, f, groups[b], [a, b], rigid * s0,
                                     one_body * s0, bound, voter_frames, drift=drift):
                         return False
@@ -232,6 +244,13 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                     # 5221) - or, of several with none, the one that continues it best
                     # (CONTINUITY_OFF_BODY, figure 2738)
                     moves.append((key, f, a, open_[0] if len(open_) == 1 else b, None))
+                elif (not to and unjudged and rules.UNJUDGED_CONTINUES
+                      and (b := _continues_best(X, vis, groups, f, a, [
+                          c for c in free if _fits(judged_on[c][0], bound)])) is not None):
+                    # no judge at home, and judges that fit it on free markers too few
+                    # frames to place it: the one of those that its motion continues better
+                    # than its own marker does (figure 24267)
+                    moves.append((key, f, a, b, None))
                 elif not to and not unjudged and rules.MISFIT_EXCHANGES:
                     swaps = _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid * s0,
                                               one_body * s0, bound, voter_frames, max_step,
@@ -326,12 +345,14 @@ def _continues_best(X, vis, groups, f, a, open_):
     less than taking f off its marker ``a`` lowers it and at least
     ``CONTINUITY_OPEN_MARGIN`` less than the next such marker's; else None (also with fewer
     than two such markers, unless ``ONE_OPEN``: then the one, when f raises its cost less
-    than taking f off a lowers a's; figure 9778: marker 20's 13-frame first piece, 527 and
-    1057 x the bound off both judges of marker 10 it sat on, one marker free, 1.34
-    against 3.36). Figure 4462: marker 30's first 17 frames, rigid to markers 0, 2
-    and 3 of the root segment while the chain between barely moved (but at other distances
-    than marker 1), sat on marker 1; markers 29 and 30 were both free and unjudged, and f
-    raised their costs by 3.78 and 1.61 (taking it off marker 1 lowered that by 2.49).
+    than taking f off a lowers a's). ``UNJUDGED_CONTINUES`` passes, for a piece no track
+    judges at home, the free markers where judges fit it over too few frames to place it
+    (figure 24267). Figure 9778: marker 20's 13-frame first piece, 527 and 1057 x the bound
+    off both judges of marker 10 it sat on, one marker free, 1.34 against 3.36. Figure 4462:
+    marker 30's first 17 frames, rigid to markers 0, 2 and 3 of the root segment while the
+    chain between barely moved (but at other distances than marker 1), sat on marker 1;
+    markers 29 and 30 were both free and unjudged, and f raised their costs by 3.78 and
+    1.61 (taking it off marker 1 lowered that by 2.49).
     Figure 2738: marker 0's first 23 frames, off the one-body track of marker 6 it sat on,
     no judge placing it; markers 0 and 1 free and unjudged, added costs 0.69 and 4.46
     (taking it off marker 6, 3.66)."""

@@ -56,6 +56,8 @@ PIECES_BREAK_TIES = True  # step 4b: of exchanges within the margin of the best,
 
 UNJUDGED_MOVES = True   # step 4c: a piece no judge sees on its own marker moves where it fits
 UNJUDGED_EVIDENCE = 20  # ... on judges that see it for this many frames in all
+UNJUDGED_CONTINUES = True  # ... or, with fewer, to the marker where judges fit it that
+#                            continues its motion better than its own (figure 24267)
 
 MISFIT_EXCHANGES = True  # step 4c: a misfit with no free marker to go to is exchanged
 EXCHANGE_UNJUDGED = True  # step 4c: a misfit may be exchanged onto a marker where no

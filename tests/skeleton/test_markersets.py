@@ -1785,6 +1785,20 @@ def test_pair_frames_outweigh_the_bodies_that_oppose_them(monkeypatch):
     assert fig.marker_segment[2] == fig.marker_segment[3]
     assert (fig.marker_segment == fig.marker_segment[2]).sum() == 2
 
+def test_an_unjudged_piece_goes_where_a_judge_fits_it_and_its_motion_continues(monkeypatch):
+    """Held-out figure 24267 (first run at stop 73): the linkage put marker 23's last 16
+    frames (2-marker segment 7; its partner, marker 24, seen with them) at the end of marker
+    3 (2-marker segment 1), hidden from 4 frames before; marker 3's partner is hidden from
+    frame 375, so no judge sees the piece at home. On marker 23 its one judge, marker 24,
+    fits it at 0.08 x the bound, but over 16 frames, under ``UNJUDGED_EVIDENCE`` (20). Its
+    motion tells: taking it off marker 3 lowers that marker's continuity cost by 5.80, and
+    it raises marker 23's by 0.60 (``UNJUDGED_CONTINUES``)."""
+    fig, _, ids = _right_then_off(monkeypatch, 24267, "UNJUDGED_CONTINUES", False)
+    assert [3, 23] in ids and [23] in ids
+    assert fig.marker_segment[3] == fig.marker_segment[4] != fig.marker_segment[23]
+    assert fig.marker_segment[23] == fig.marker_segment[24]
+
+
 def test_pieces_break_the_voters_ties(monkeypatch):
     """Held-out figure 21448 (first run at stop 69): steps 1-3 merged marker 22's first
     fragment and its 14-frame piece (frames 149-162) with marker 26's last two (2-marker
