@@ -33,11 +33,13 @@
    segment 7, its partner seen) sat at the end of marker 3 (2-marker segment 1, hidden from
    4 frames before, its partner from 10 before); on marker 23 the partner fitted them at
    0.08 x the bound over 16 frames, and the piece raised marker 23's cost by 0.60 where
-   taking it off marker 3 lowered that by 5.80 (figure 556's piece: 5.65 against 1.94,
-   it stays). A misfit that no marker free over its frames takes is exchanged
-   (``MISFIT_EXCHANGES``): the one overlap-free exchange of a run of fragments between its
-   marker and another that moves it there and after which every moved fragment fits the
-   fragments its new marker kept (``_fits``, and off no one-body track) is made (figure
+   taking it off marker 3 lowered that by 5.80; the move must lower the sum by
+   ``CONTINUITY_OPEN_MARGIN`` (2) at least (figure 556's piece: 5.65 against 1.94, it
+   stays; figure 1304's, 1.40 against 3.00, to the wrong marker, stays). A misfit that no
+   marker free over its frames takes is exchanged (``MISFIT_EXCHANGES``): the one
+   overlap-free exchange of a run of fragments between its marker and another that moves
+   it there and after which every moved fragment fits the fragments its new marker kept
+   (``_fits``, and off no one-body track) is made (figure
    3224, held out at stop 39: the linkage gave marker 5 (a 4-marker segment) marker 19's
    first 11 frames and marker 19 (a 2-marker segment) marker 5's first 27. Marker 19's
    piece sat 13.5-35.2 x the bound off on all three of marker 5's segment partners and
@@ -245,11 +247,13 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                     # (CONTINUITY_OFF_BODY, figure 2738)
                     moves.append((key, f, a, open_[0] if len(open_) == 1 else b, None))
                 elif (not to and unjudged and rules.UNJUDGED_CONTINUES
-                      and (b := _continues_best(X, vis, groups, f, a, [
-                          c for c in free if _fits(judged_on[c][0], bound)])) is not None):
+                      and (b := _continues_best(
+                          X, vis, groups, f, a,
+                          [c for c in free if _fits(judged_on[c][0], bound)],
+                          clear=rules.CONTINUITY_OPEN_MARGIN)) is not None):
                     # no judge at home, and judges that fit it on free markers too few
-                    # frames to place it: the one of those that its motion continues better
-                    # than its own marker does (figure 24267)
+                    # frames to place it: the one of those that its motion continues clearly
+                    # better than its own marker does (figure 24267; not 1304)
                     moves.append((key, f, a, b, None))
                 elif not to and not unjudged and rules.MISFIT_EXCHANGES:
                     swaps = _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid * s0,
@@ -338,7 +342,7 @@ def _one_body_fits(X, vis, P, sd_of, f, groups, free, excl, rigid_sd, body_sd, b
     return takes[0] if len(takes) == 1 and off == len(free) - 1 else None
 
 
-def _continues_best(X, vis, groups, f, a, open_):
+def _continues_best(X, vis, groups, f, a, open_, clear=0.0):
     """Step 4c's ``CONTINUITY_OPEN`` and ``CONTINUITY_OFF_BODY``: of the markers ``open_``
     (free over fragment ``f``'s frames, no track judging it there: ``_unjudged_on``), the
     one whose continuity cost (step 8's ``_continuity_cost``) f raises least, when that is
@@ -346,13 +350,18 @@ def _continues_best(X, vis, groups, f, a, open_):
     ``CONTINUITY_OPEN_MARGIN`` less than the next such marker's; else None (also with fewer
     than two such markers, unless ``ONE_OPEN``: then the one, when f raises its cost less
     than taking f off a lowers a's). ``UNJUDGED_CONTINUES`` passes, for a piece no track
-    judges at home, the free markers where judges fit it over too few frames to place it
-    (figure 24267). Figure 9778: marker 20's 13-frame first piece, 527 and 1057 x the bound
-    off both judges of marker 10 it sat on, one marker free, 1.34 against 3.36. Figure 4462:
-    marker 30's first 17 frames, rigid to markers 0, 2 and 3 of the root segment while the
-    chain between barely moved (but at other distances than marker 1), sat on marker 1;
-    markers 29 and 30 were both free and unjudged, and f raised their costs by 3.78 and
-    1.61 (taking it off marker 1 lowered that by 2.49).
+    judges at home, the free markers where judges fit it over too few frames to place it,
+    and asks the move to lower the sum of the two costs by ``clear``
+    (``CONTINUITY_OPEN_MARGIN``) at least: figure 24267, 0.60 against 5.80, moves; figure
+    1304, marker 3's last 18 frames on marker 2, fitted on marker 4 of the same segment by
+    one judge (marker 3 held marker 4's last piece), 1.40 against 3.00, does not: the
+    wrong marker, which later steps put right. Figure 9778: marker 20's 13-frame first
+    piece, 527 and 1057 x the bound off both judges of marker 10 it sat on, one marker
+    free, 1.34 against 3.36. Figure 4462: marker 30's first 17 frames, rigid to markers 0,
+    2 and 3 of the root segment while the chain between barely moved (but at other
+    distances than marker 1), sat on marker 1; markers 29 and 30 were both free and
+    unjudged, and f raised their costs by 3.78 and 1.61 (taking it off marker 1 lowered
+    that by 2.49).
     Figure 2738: marker 0's first 23 frames, off the one-body track of marker 6 it sat on,
     no judge placing it; markers 0 and 1 free and unjudged, added costs 0.69 and 4.46
     (taking it off marker 6, 3.66)."""
@@ -364,10 +373,11 @@ def _continues_best(X, vis, groups, f, a, open_):
         # one marker free and unjudged: it continues f better than its marker does
         # (``ONE_OPEN``; figure 9778)
         b = open_[0]
-        return b if cost(groups[b] + [f]) - cost(groups[b]) < gain else None
+        return b if cost(groups[b] + [f]) - cost(groups[b]) + clear < gain else None
     (best, b), (second, _) = sorted((cost(groups[b] + [f]) - cost(groups[b]), b)
                                     for b in open_)[:2]
-    return b if best < gain and second - best >= rules.CONTINUITY_OPEN_MARGIN else None
+    return (b if best + clear < gain and second - best >= rules.CONTINUITY_OPEN_MARGIN
+            else None)
 
 
 def _misfit_exchanges(X, vis, P, sd_of, span, groups, f, a, rigid_sd, body_sd, bound,

@@ -1792,7 +1792,8 @@ def test_an_unjudged_piece_goes_where_a_judge_fits_it_and_its_motion_continues(m
     frame 375, so no judge sees the piece at home. On marker 23 its one judge, marker 24,
     fits it at 0.08 x the bound, but over 16 frames, under ``UNJUDGED_EVIDENCE`` (20). Its
     motion tells: taking it off marker 3 lowers that marker's continuity cost by 5.80, and
-    it raises marker 23's by 0.60 (``UNJUDGED_CONTINUES``)."""
+    it raises marker 23's by 0.60, more than ``CONTINUITY_OPEN_MARGIN`` (2) less
+    (``UNJUDGED_CONTINUES``)."""
     fig, _, ids = _right_then_off(monkeypatch, 24267, "UNJUDGED_CONTINUES", False)
     assert [3, 23] in ids and [23] in ids
     assert fig.marker_segment[3] == fig.marker_segment[4] != fig.marker_segment[23]
