@@ -262,10 +262,15 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                 # its one mate), or, with MODEL_UNSURE, either way
                 weak = rules.MODEL_STRONGER and len(home) == 1 and not off and (
                     rules.MODEL_UNSURE or _fits(model.judge(f, a, fit=True)))
-                if not (off or weak):
+                # neither off nor fitting, one mate finding it beyond MODEL_FAR_Z: it
+                # moves where several mates fit it clearly (``MODEL_UNFIT_MOVES``, 25141)
+                unfit = (rules.MODEL_UNFIT_MOVES and not off and not weak and len(home) >= 2
+                         and max(z for z, _ in home) > rules.MODEL_FAR_Z
+                         and not _fits(model.judge(f, a, fit=True)))
+                if not (off or weak or unfit):
                     continue
                 change = _destination(model, vis, span, groups, f, a, off, max_step, fixed,
-                                      home_z=home[0][0] if weak else None)
+                                      home_z=home[0][0] if weak else 0.0 if unfit else None)
                 if change is not None:
                     score = min(z for z, _ in home) if off else 0.0
                     changes.append((score, change))
