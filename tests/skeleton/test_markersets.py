@@ -1925,6 +1925,22 @@ def test_model_judges_a_displaced_piece_off_and_the_right_one_fitting():
     assert min(z for z, _ in moved) > rules.MODEL_OFF_Z
 
 
+def test_model_check_moves_a_piece_its_marker_does_not_fit_where_several_mates_do(monkeypatch):
+    """Held-out figure 25141 (first run at stop 74): the linkage put marker 11's first 16
+    frames (3-marker segment 3) on marker 8 (3-marker segment 2, a sibling), first seen at
+    frame 26. Step 4c found the piece off marker 8's body but kept it: a marker of the hinge
+    child segment 4, one body with marker 8 by chance, fits it there. At step 12 marker 8's
+    three mates find it 37.0, 2.8 and 1.2 x their robust sds: not off (median 2.8, under
+    ``MODEL_OFF_Z``), not fitting (over ``MODEL_FIT_Z``, one mate beyond ``MODEL_FAR_Z``).
+    On marker 11, free over those frames, its two segment mates find it 1.02 and 0.82 x.
+    ``MODEL_UNFIT_MOVES`` moves such a piece where several mates fit it clearly."""
+    fig, _, ids = _right_then_off(monkeypatch, 25141, "MODEL_UNFIT_MOVES", False)
+    assert [8, 11] in ids
+    seg = fig.marker_segment
+    assert seg[7] == seg[8] == seg[9] != seg[10] == seg[11] == seg[12]
+    assert fig.parents[seg[14]] == seg[8] and fig.joint_types[seg[14]] == "hinge"
+
+
 def test_an_off_body_piece_most_home_judges_fit_stays(monkeypatch):
     """Held-out figure 22706 (first run at stop 71): marker 3's last fragment (frames
     334-399, 3-marker segment 1) is off a track moving as one body with its marker, but two
