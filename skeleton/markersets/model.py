@@ -98,6 +98,17 @@ the one mate at home finding the piece better; a right move is kept from its mar
 where its new mates pool beyond 1.5 (0.1 % of right pieces) and the wrong home fits better
 still. 12669's, 17888's and 18401's moves pool to 0.95, 1.01 and 0.97.
 
+Since stop 75 a piece neither off nor fitting its marker (the median z of its mates between
+``MODEL_FIT_Z`` and ``MODEL_OFF_Z``, also without mates that miss the marker's own nearest
+frames), with two mates or more and one of them beyond ``MODEL_FAR_Z``, moves as a piece one
+mate judges does: where ``MODEL_STRONG_MATES`` fit it, clearly (pooled within
+``MODEL_CLEAR_Z``) (``MODEL_UNFIT_MOVES``). Held-out figure 25141 (stop 74): marker 11's
+first 16 frames (3-marker segment 3) sat on marker 8 (3-marker sibling segment 2); marker
+8's mates find them 37.0 (segment partner 9), 2.8 (segment partner 7) and 1.2 x (marker 14
+of the hinge child segment, one body with marker 8 by chance, which also kept step 4c from
+moving the piece); on marker 11, free over those frames, its segment mates 10 and 12 find
+them 1.02 and 0.82 x.
+
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations
@@ -231,6 +242,11 @@ def _fits(js, half=False) -> bool:
     return float(np.median(zs)) <= rules.MODEL_FIT_Z
 
 
+def _median_z(js) -> float:
+    """The median z of the judging mates (0 where none judges)."""
+    return float(np.median([z for z, _ in js])) if js else 0.0
+
+
 def _takes(js) -> bool:
     """A marker takes back an exchanged piece: it fits, or no mate judges it there."""
     return not js or _fits(js)
@@ -266,7 +282,7 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                 # moves where several mates fit it clearly (``MODEL_UNFIT_MOVES``, 25141)
                 unfit = (rules.MODEL_UNFIT_MOVES and not off and not weak and len(home) >= 2
                          and max(z for z, _ in home) > rules.MODEL_FAR_Z
-                         and not _fits(model.judge(f, a, fit=True)))
+                         and _median_z(model.judge(f, a, fit=True)) > rules.MODEL_FIT_Z)
                 if not (off or weak or unfit):
                     continue
                 change = _destination(model, vis, span, groups, f, a, off, max_step, fixed,
