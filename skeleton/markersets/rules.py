@@ -70,6 +70,7 @@ CONTINUITY_OPEN = True   # step 4c: a misfit no marker takes goes to the free ma
 #                          nothing finds it off that continues it best (figure 4462)
 CONTINUITY_OPEN_MARGIN = 2.0   # ... by this much in step 8's continuity cost over the next
 ONE_OPEN = True          # ... or, the one such marker, where it continues it better (9778)
+ONE_OPEN_CLEAR = True    # ... by CONTINUITY_OPEN_MARGIN at least (25854: 2.19 vs 3.17 stays)
 CONTINUITY_OFF_BODY = True   # ... also an off-body piece with several free markers where
 #                              nothing finds it off (ONLY_FREE_MARKER's case; figure 2738)
 BODY_FITS_FREE = True    # step 4c: an off-body piece no marker takes goes to the one free
