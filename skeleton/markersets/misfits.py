@@ -73,6 +73,12 @@
    marker 30's first 17 frames sat on marker 1 of the root segment, over 1000 x s0
    squared off its three partners; markers 29 and 30 were free and unjudged, with added
    costs 3.78 and 1.61, and taking the piece off marker 1 lowered its cost by 2.49).
+   Where one marker only is free and unjudged it goes there when it raises that marker's
+   cost by ``CONTINUITY_OPEN_MARGIN`` less than taking it off lowers its own (``ONE_OPEN``,
+   figure 9778: 1.34 against 3.36; the margin since stop 75, ``ONE_OPEN_CLEAR``: held-out
+   figure 25854, marker 26's first 19 frames on their own marker, 82.9 and 3.47 x the
+   bound off two markers of the parent segment across a ball joint, went to marker 27,
+   its segment partner, at 2.19 against 3.17).
    An off-body piece of ``ONLY_FREE_MARKER``'s kind with several free markers where
    nothing finds it off goes the same way (``CONTINUITY_OFF_BODY``; figure 2738, failing
    since stop 38: marker 0's first 23 frames sat on marker 6, 6.1 x s0 off its one-body
@@ -349,7 +355,8 @@ def _continues_best(X, vis, groups, f, a, open_, clear=0.0):
     less than taking f off its marker ``a`` lowers it and at least
     ``CONTINUITY_OPEN_MARGIN`` less than the next such marker's; else None (also with fewer
     than two such markers, unless ``ONE_OPEN``: then the one, when f raises its cost less
-    than taking f off a lowers a's). ``UNJUDGED_CONTINUES`` passes, for a piece no track
+    than taking f off a lowers a's, by ``CONTINUITY_OPEN_MARGIN`` less with
+    ``ONE_OPEN_CLEAR``). ``UNJUDGED_CONTINUES`` passes, for a piece no track
     judges at home, the free markers where judges fit it over too few frames to place it,
     and asks the move to lower the sum of the two costs by ``clear``
     (``CONTINUITY_OPEN_MARGIN``) at least: figure 24267, 0.60 against 5.80, moves; figure

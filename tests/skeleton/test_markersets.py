@@ -775,6 +775,22 @@ def test_a_misfit_with_one_open_marker_goes_there_when_it_continues_it(monkeypat
     assert fig.marker_segment[10] != fig.marker_segment[20]
 
 
+def test_the_one_open_marker_takes_a_misfit_only_where_it_continues_it_clearly(monkeypatch):
+    """Held-out figure 25854 (first run at stop 75): the linkage gave marker 26 (2-marker
+    segment 9) its own first 19 frames. Two markers of the parent segment, rigid to marker
+    26 across a ball joint over their common frames, find the piece 82.9 and 3.47 x the
+    jump bound off, so it is a misfit; no marker fits it and marker 27, its segment
+    partner, free over those frames and with nothing to judge it there, is the one open
+    marker. Taking it off marker 26 lowers that marker's continuity cost by 3.17; on marker
+    27 it raises it by 2.19, and ``ONE_OPEN`` moved it there. It now asks the margin
+    ``CONTINUITY_OPEN_MARGIN`` (2) of that as of two open markers (``ONE_OPEN_CLEAR``);
+    9778's piece (1.34 against 3.36) still moves."""
+    fig, _, ids = _right_then_off(monkeypatch, 25854, "ONE_OPEN_CLEAR", False)
+    assert [26, 27] in ids
+    seg = fig.marker_segment
+    assert seg[26] == seg[27] and (seg == seg[26]).sum() == 2
+
+
 def test_an_off_body_piece_goes_to_the_one_free_marker_whose_body_holds_it(monkeypatch):
     """Held-out figure 10847 (first run at stop 54): the linkage gave marker 11's first 39
     frames (a 3-marker segment) to marker 25 of the next segment, whose segment partner
