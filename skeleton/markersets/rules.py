@@ -22,6 +22,8 @@ PARTNER_SPLITS = True   # ... and judges ids with a segment partner too, by turn
 CONTINUITY_JOINS = True  # step 7b: markers left as two ids are joined by motion continuity
 CHAIN_JOINS = True  # ... and a marker left as three or more, where their joins are each
 #                     other's only rivals (figure 22748)
+PAIR_JOINS = True  # ... and two markers each left as two ids, where the joins are each
+#                    other's rivals but one pairing of the four is clear (figure 26100)
 JOINS_AFTER_EXCHANGES = True  # step 9: and again where step 8 exchanged (figure 4881)
 
 SPLIT_JOINS = True  # step 10: a marker holding two others' pieces is split and joined
