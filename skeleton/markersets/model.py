@@ -119,6 +119,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from . import rules
+from .continuity import _continuity_cost
 from .tracks import _paced, _spans, _tracks
 
 
@@ -147,6 +148,7 @@ class _Model:
         self.X, self.vis, self.groups = X, vis, groups
         self.P = _tracks(X, groups)
         self._memo = {}
+        self.cost = _continuity_cost(X, vis)
         n = len(groups)
         sd = np.full((n, n), np.nan)
         for i in range(n):
@@ -345,6 +347,12 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z
                    if h1 < h2):
                 continue
         if not (_paced(X, span, new_a, max_step) and _paced(X, span, new_b, max_step)):
+            continue
+        if not off and rules.MODEL_CONTINUITY and (
+                model.cost(new_a) + model.cost(new_b) - model.cost(groups[a])
+                - model.cost(groups[b]) >= rules.CONTINUITY_MARGIN):
+            # a piece its mates do not find off does not move where it breaks the motion
+            # of both markers by the margin (``MODEL_CONTINUITY``, 26461)
             continue
         found.append({a: new_a, b: new_b})
     if len(found) != 1:

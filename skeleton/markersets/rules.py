@@ -149,6 +149,8 @@ MODEL_STRONGER_CLEAR = True  # ... only where those mates find it clearly (their
 #                              within MODEL_CLEAR_Z) or better than its one mate does (20213)
 MODEL_CLEAR_Z = 1.5     # ... (pieces on their right marker with two or more mates within
 #                         MODEL_FIT_Z: 11 of 10,568 beyond it, the largest 1.64; 20213's 1.64)
+MODEL_CONTINUITY = True  # ... a piece that is not off moves only where the continuity cost
+#                          (step 7b's) rises less than CONTINUITY_MARGIN (26461: 3.50 to 10.99)
 MODEL_UNFIT_MOVES = True  # ... a piece neither off nor fitting (median z), a mate beyond
 #                           MODEL_FAR_Z, moves where several fit it clearly (25141: 37, 2.8, 1.2)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then
