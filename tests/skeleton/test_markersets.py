@@ -775,6 +775,38 @@ def test_a_misfit_with_one_open_marker_goes_there_when_it_continues_it(monkeypat
     assert fig.marker_segment[10] != fig.marker_segment[20]
 
 
+def test_model_check_moves_no_fitting_piece_where_it_breaks_the_motion(monkeypatch):
+    """Held-out figure 26461 (first run at stop 75): marker 32's frames 45-84 sat on their
+    own marker (3-marker segment 10, its partner 33 hidden over 45-96). The one mate that
+    judges them there, marker 34, finds them 1.05 x; on marker 33 marker 34 finds them 0.98
+    x (32 and 33 are 30.5 and 29.6 mm from it) and marker 39 of the hinge child, one body
+    with 33 but not with 32, 1.36 x: pooled within ``MODEL_CLEAR_Z``, so ``MODEL_STRONGER``
+    moved them. Marker 33's last frame before is 44, and the piece starts 20 mm from it:
+    the move raises the two markers' continuity cost from 3.50 to 10.99, and with
+    ``MODEL_CONTINUITY`` a piece that is not off does not move where it rises by the
+    margin (4)."""
+    fig, _, ids = _right_then_off(monkeypatch, 26461, "MODEL_CONTINUITY", False)
+    assert [32, 33] in ids
+    seg = fig.marker_segment
+    assert seg[32] == seg[33] == seg[34] and (seg == seg[32]).sum() == 3
+
+
+def test_model_check_exchange_takes_back_a_piece_no_mate_judges(monkeypatch):
+    """Held-out figure 26494 (first run at stop 75): the linkage put marker 22's first 68
+    frames (2-marker segment 8) on marker 2 (2-marker segment 1, its parent), and marker
+    2's frames 42-61, inside them, on marker 22. Marker 2's segment partner finds the first
+    piece 45.6 x off, marker 22's mate 0.96 x; the second piece has no mate of marker 22
+    to judge it and marker 2's partner finds it 0.94 x over 5 frames only (under
+    ``MODEL_EVIDENCE``), so step 12's exchange was not made. ``MODEL_UNJUDGED_BACK`` takes
+    such a piece back where nothing there judges it, no mate of its new marker finds it
+    beyond ``MODEL_FIT_Z`` and the exchange does not raise the continuity cost (2.54 to
+    1.26)."""
+    fig, _, ids = _right_then_off(monkeypatch, 26494, "MODEL_UNJUDGED_BACK", False)
+    assert ids.count([2, 22]) == 2
+    seg = fig.marker_segment
+    assert fig.parents[seg[22]] == seg[2]
+
+
 def test_the_one_open_marker_takes_a_misfit_only_where_it_continues_it_clearly(monkeypatch):
     """Held-out figure 25854 (first run at stop 75): the linkage gave marker 26 (2-marker
     segment 9) its own first 19 frames. Two markers of the parent segment, rigid to marker
@@ -1985,6 +2017,46 @@ def test_a_marker_left_as_three_ids_is_joined_as_a_chain(monkeypatch):
     fig, _, ids = _right_then_off(monkeypatch, 22748, "CHAIN_JOINS", False)
     assert ids.count([16]) == 3
     assert (fig.marker_segment == fig.marker_segment[16]).sum() == 2
+
+
+def test_two_markers_left_as_two_ids_each_are_joined_by_the_clear_pairing(monkeypatch):
+    """Held-out figure 26100 (first run at stop 75): markers 33 and 34, the two markers of
+    2-marker hinge segment 11, hidden over frames 232-270 and 267-296, were each left as
+    two ids. Step 7b's joins cost 1.70 (marker 33) and 1.02 (marker 34), the crossed ones
+    2.55 and 7.65, so each right join has a rival within the margin (4) and none was made.
+    The right pairing costs 2.72 in all, the crossed one 10.20: ``PAIR_JOINS`` makes it."""
+    fig, off, ids = _right_then_off(monkeypatch, 26100, "PAIR_JOINS", False)
+    assert ids.count([33]) == 2 and ids.count([34]) == 2
+    seg = fig.marker_segment
+    assert seg[33] == seg[34] and (seg == seg[33]).sum() == 2
+
+
+def test_pairing_joins_four_ids_only_where_one_pairing_is_clear():
+    """``joins._pairing`` on join costs alone: four ids (0 and 2 seen early, 1 and 3 late)
+    whose joins cost 1.7 (0+1), 1.0 (2+3), 2.6 (0+3) and 7.7 (2+1) - each right join with a
+    rival within the margin - are joined 0+1 and 2+3 (2.7 against 10.3); not where the
+    crossed pairing is within the margin of it, nor where an id joins one outside nearly
+    as well, nor with fewer ids above the bound than the pairing takes away."""
+    from skeleton.markersets import rules
+    from skeleton.markersets.joins import _pairing
+    inf = np.inf
+    C = np.array([[inf, 1.7, inf, 2.6, 20.0],
+                  [1.7, inf, 7.7, inf, inf],
+                  [inf, 7.7, inf, 1.0, 15.0],
+                  [2.6, inf, 1.0, inf, inf],
+                  [20.0, inf, 15.0, inf, inf]])
+    assert rules.CONTINUITY_MARGIN == 4.0
+    assert _pairing(C, 2) == [(0, 1), (2, 3)]
+    assert _pairing(C, 1) is None                       # one id above the bound
+    D = C.copy()
+    D[1, 2] = D[2, 1] = 3.0                              # crossed pairing 5.6 against 2.7
+    assert _pairing(D, 2) is None
+    E = C.copy()
+    E[0, 4] = E[4, 0] = 4.5                              # id 0 joins id 4 nearly as well
+    assert _pairing(E, 2) is None
+    F = C.copy()
+    F[0, 2] = F[2, 0] = F[1, 3] = F[3, 1] = 30.0         # a third pairing, far off: still clear
+    assert _pairing(F, 2) == [(0, 1), (2, 3)]
 
 
 def test_chain_joins_only_ids_that_can_all_be_one_marker():
