@@ -224,7 +224,7 @@ class _Model:
 
 def _off(js) -> bool:
     """Off its marker: the median z of the judging mates beyond ``MODEL_OFF_Z``."""
-    return bool(js) and float(np.median([z for z, _ in js])) > rules.MODEL_OFF_Z
+    return bool(js) and _median_z(js) > rules.MODEL_OFF_Z
 
 
 def _fits(js, half=False) -> bool:
