@@ -28,6 +28,14 @@ Steps 5 and 9 run the linkage (``linkage._merge_pass``) again from the package's
    leaves no fewer markers than the bound (``CHAIN_JOINS``, stop 72, ``_chain``; held-out
    figure 22748: marker 16 of a 2-marker segment left as ids over frames 0-320, 346-356
    and 373-399, joins 1.50, 2.45 and 3.12 among them, the next 14.14).
+   Two markers each left as two ids, hidden over nearly the same frames, give four ids
+   whose joins are each other's rivals. Where no chain is joined either, the ids linked by
+   joins within the margin (an even number, at most 8) are joined two by two where one
+   pairing of them all is cheaper by the margin than every other, each of its joins costs
+   at most the margin and each id's joins outside cost the margin more than its join in
+   it (``PAIR_JOINS``, stop 76, ``_pairing``; held-out figure 26100: markers 33 and 34 of a
+   2-marker hinge segment, joins 1.70 and 1.02, crossed 2.55 and 7.65: pairings 2.72
+   against 10.20).
 9. step 8 can leave a marker as two ids, as the swap repair can (step 5): in figure 1833
    (held out, first run at stop 34) the linkage merged marker 17 right, the swap repair
    moved its first fragment out and a piece of marker 15 (same segment) in, and step 8

@@ -109,6 +109,27 @@ of the hinge child segment, one body with marker 8 by chance, which also kept st
 moving the piece); on marker 11, free over those frames, its segment mates 10 and 12 find
 them 1.02 and 0.82 x.
 
+Since stop 76:
+
+- A piece that is not off its marker (``MODEL_STRONGER``, ``MODEL_UNSURE``,
+  ``MODEL_UNFIT_MOVES``) does not move, nor is it exchanged, where the move raises the two
+  markers' continuity cost (step 7b's ``_continuity_cost``) by ``CONTINUITY_MARGIN`` or more
+  (``MODEL_CONTINUITY``). Held-out figure 26461 (stop 75): marker 32's frames 45-84 (3-marker
+  segment 10) fit their one judge at home, segment mate 34, at 1.05 x; on segment mate 33,
+  hidden over 45-96, marker 34 finds them 0.98 x (32 and 33 are 30.5 and 29.6 mm from it)
+  and marker 39 of the hinge child, one body with 33 but not with 32 (robust sds 1.35 and
+  1.69 x s0), 1.36 x, so ``MODEL_STRONGER`` moved them. Marker 33 was last seen at frame 44,
+  20 mm from where the piece starts: the move raises the cost from 3.50 to 10.99. The moves
+  of 12669, 17888, 25141, 13925 and 13725 lower it; 18401's raises it by 1.44.
+- An off piece's exchange takes back a piece that no mate of its marker judges where it
+  is, where no mate of the off piece's marker finds it beyond ``MODEL_FIT_Z`` and the
+  exchange does not raise the two markers' continuity cost (``MODEL_UNJUDGED_BACK``,
+  ``_unjudged_back``). Held-out figure 26494 (stop 75): marker 22's first 68 frames
+  (2-marker segment 8) sat on marker 2 (2-marker segment 1, its parent), 45.6 x off marker
+  2's partner and 0.96 x on marker 22's mate; marker 2's frames 42-61, inside them, sat on
+  marker 22, where no mate sees them, and marker 2's partner finds them 0.94 x over 5
+  frames, under ``MODEL_EVIDENCE``. The exchange lowers the cost from 2.54 to 1.26.
+
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations
