@@ -153,6 +153,8 @@ MODEL_CONTINUITY = True  # ... a piece that is not off moves only where the cont
 #                          (step 7b's) rises less than CONTINUITY_MARGIN (26461: 3.50 to 10.99)
 MODEL_UNJUDGED_BACK = True  # ... an off piece's exchange takes back a piece no mate judges
 #                             where it is, fitting its new marker, continuity not rising (26494)
+MODEL_OFF_OPEN = True  # ... an off piece no marker fits moves to the one free marker where no
+#                        mate judges it, continuity not rising (26901)
 MODEL_UNFIT_MOVES = True  # ... a piece neither off nor fitting (median z), a mate beyond
 #                           MODEL_FAR_Z, moves where several fit it clearly (25141: 37, 2.8, 1.2)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then
