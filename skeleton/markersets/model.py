@@ -129,6 +129,12 @@ Since stop 76:
   2's partner and 0.96 x on marker 22's mate; marker 2's frames 42-61, inside them, sat on
   marker 22, where no mate sees them, and marker 2's partner finds them 0.94 x over 5
   frames, under ``MODEL_EVIDENCE``. The exchange lowers the cost from 2.54 to 1.26.
+- An off piece that no marker fits moves to the one marker free over its frames (and
+  paced) where no mate judges it, where the move does not raise the two markers'
+  continuity cost (``MODEL_OFF_OPEN``, ``_open_move``). Held-out figure 26901 (stop 76):
+  marker 51's last 20 frames (2-marker segment 15, hidden from frame 348 with its partner)
+  sat at the end of marker 31 (its 4-marker parent segment's), whose mates find them 5.04,
+  1.66 and 3.99 x; the move lowers the cost from 2.38 to 0.83.
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """

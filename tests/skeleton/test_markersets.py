@@ -807,6 +807,19 @@ def test_model_check_exchange_takes_back_a_piece_no_mate_judges(monkeypatch):
     assert fig.parents[seg[22]] == seg[2]
 
 
+def test_model_check_moves_an_off_piece_to_the_one_free_marker_nothing_judges(monkeypatch):
+    """Held-out figure 26901 (first run at stop 76): the linkage put marker 51's last 20
+    frames (2-marker segment 15, hidden from frame 348 with its partner) at the end of
+    marker 31 (4-marker segment 8, its parent, hidden over 365-379). Marker 31's segment
+    mates find the piece 5.04, 1.66 and 3.99 x: off. No marker fits it, and marker 51, the
+    one free marker, has no mate to judge it. ``MODEL_OFF_OPEN`` moves it there, since the
+    move lowers the two markers' continuity cost (2.38 to 0.83)."""
+    fig, _, ids = _right_then_off(monkeypatch, 26901, "MODEL_OFF_OPEN", False)
+    assert [31, 51] in ids and ids.count([51]) == 1
+    seg = fig.marker_segment
+    assert fig.parents[seg[51]] == seg[31] and (seg == seg[31]).sum() == 4
+
+
 def test_the_one_open_marker_takes_a_misfit_only_where_it_continues_it_clearly(monkeypatch):
     """Held-out figure 25854 (first run at stop 75): the linkage gave marker 26 (2-marker
     segment 9) its own first 19 frames. Two markers of the parent segment, rigid to marker
