@@ -367,7 +367,7 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z
             # an exchange: each piece coming back is off b and fits a without f
             if off and not all(_off(model.judge(h, b))
                                and _takes(model.judge(h, a, without=(f,), fit=True))
-                               or _unjudged_back(model, groups, f, a, b, h, clash)
+                               or _unjudged_back(model, groups, f, a, b, h, new_a, new_b)
                                for h in clash):
                 if rules.MODEL_ROTATIONS and len(clash) == 1:
                     found += _rotations(model, vis, span, groups, f, a, b, clash[0],
@@ -379,8 +379,7 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z
         if not (_paced(X, span, new_a, max_step) and _paced(X, span, new_b, max_step)):
             continue
         if not off and rules.MODEL_CONTINUITY and (
-                model.cost(new_a) + model.cost(new_b) - model.cost(groups[a])
-                - model.cost(groups[b]) >= rules.CONTINUITY_MARGIN):
+                _rise(model, groups, a, b, new_a, new_b) >= rules.CONTINUITY_MARGIN):
             # a piece its mates do not find off does not move where it breaks the motion
             # of both markers by the margin (``MODEL_CONTINUITY``, 26461)
             continue
@@ -413,19 +412,26 @@ def _open_move(model, vis, span, groups, f, a, max_step):
     if len(found) != 1:
         return None
     b, new_a, new_b = found[0]
-    if (model.cost(new_a) + model.cost(new_b)
-            > model.cost(groups[a]) + model.cost(groups[b])):
+    if _rise(model, groups, a, b, new_a, new_b) > 0:
         return None
     out = [list(g) for g in groups]
     out[a], out[b] = new_a, new_b
     return [g for g in out if g]
 
 
-def _unjudged_back(model, groups, f, a, b, h, clash) -> bool:
+def _rise(model, groups, a, b, new_a, new_b) -> float:
+    """How much markers ``a`` and ``b`` taking fragments ``new_a`` and ``new_b`` raise
+    their continuity cost (step 7b's, ``_continuity_cost``); below 0 where it falls."""
+    return ((model.cost(new_a) + model.cost(new_b))
+            - (model.cost(groups[a]) + model.cost(groups[b])))
+
+
+def _unjudged_back(model, groups, f, a, b, h, new_a, new_b) -> bool:
     """``MODEL_UNJUDGED_BACK``: piece ``h`` of marker ``b``, over the frames of the off
     piece ``f`` of marker ``a``, goes back to ``a`` in an exchange where no mate of ``b``
     judges it there, no mate of ``a`` (without f) finds it beyond ``MODEL_FIT_Z``, and the
-    exchange does not raise the two markers' continuity cost. Held-out figure 26494 (stop
+    exchange (to ``new_a`` and ``new_b``) does not raise the two markers' continuity cost.
+    Held-out figure 26494 (stop
     76): marker 22's first 68 frames sat on marker 2 (its parent segment's), 45.6 x off
     marker 2's segment mate there and 0.96 x on marker 22's; marker 2's 20 frames inside
     them sat on marker 22, where no mate sees them, and marker 2's mate finds them 0.94 x
@@ -435,10 +441,7 @@ def _unjudged_back(model, groups, f, a, b, h, clash) -> bool:
         return False
     if any(z > rules.MODEL_FIT_Z for z, _ in model.judge(h, a, without=(f,), fit=True)):
         return False
-    new_a = [x for x in groups[a] if x != f] + list(clash)
-    new_b = [x for x in groups[b] if x not in clash] + [f]
-    return (model.cost(new_a) + model.cost(new_b)
-            <= model.cost(groups[a]) + model.cost(groups[b]))
+    return _rise(model, groups, a, b, new_a, new_b) <= 0
 
 
 def _rotations(model, vis, span, groups, f, a, b, h, max_step, fixed=()) -> list:
