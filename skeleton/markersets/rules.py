@@ -24,6 +24,12 @@ CHAIN_JOINS = True  # ... and a marker left as three or more, where their joins 
 #                     other's only rivals (figure 22748)
 PAIR_JOINS = True  # ... and two markers each left as two ids, where the joins are each
 #                    other's rivals but one pairing of the four is clear (figure 26100)
+RANGE_JOINS = True  # ... and an id whose cheapest join has rivals within the margin, where
+#                     the distance ranges to other tracks rule every rival out (26928)
+RANGE_OFF_Z = 5.0   # ... a track finds the id this x its distance sd outside a rival's range
+RANGE_FIT_Z = 1.5   # ... and within this x of the join's range
+RANGE_VOTES = 3     # ... on at least this many tracks, and this x those finding the reverse
+RANGE_FRAMES = 100  # ... the range measured over at least this many frames
 JOINS_AFTER_EXCHANGES = True  # step 9: and again where step 8 exchanged (figure 4881)
 
 SPLIT_JOINS = True  # step 10: a marker holding two others' pieces is split and joined
