@@ -2055,6 +2055,60 @@ def test_two_markers_left_as_two_ids_each_are_joined_by_the_clear_pairing(monkey
     assert seg[33] == seg[34] and (seg == seg[33]).sum() == 2
 
 
+def test_an_end_piece_left_an_id_joins_the_marker_whose_distance_ranges_it_keeps(monkeypatch):
+    """Held-out figure 26928 (first run at stop 76): marker 35's last 15 frames (frames
+    385-399; 2-marker hinge segment 11, both markers hidden before them) were left an id of
+    their own. Step 7b's join to marker 35 costs 2.11, to its partner 34 4.62: within the
+    margin (4) of each other, so neither was made. The parent segment's marker 14 is
+    368-376 mm from the piece, inside marker 35's range (345-414 mm) and 186 mm outside
+    marker 34's (131-184 mm): ``RANGE_JOINS`` makes the join to 35."""
+    fig, off, ids = _right_then_off(monkeypatch, 26928, "RANGE_JOINS", False)
+    assert ids.count([35]) == 2 and len(ids) == fig.n_markers + 1
+    seg = fig.marker_segment
+    assert seg[34] == seg[35] and (seg == seg[35]).sum() == 2
+
+
+def test_a_far_track_that_finds_the_right_marker_off_is_outvoted(monkeypatch):
+    """Held-out figure 26929 (first run at stop 76): marker 9's last 15 frames (2-marker
+    segment 3, both markers hidden before them) were an id of their own; the join to
+    marker 9 costs 2.60, to its partner 8 5.36 and to marker 7 5.99. Twelve tracks find the
+    piece in marker 9's distance range and 5 x their sd or more outside marker 8's; one
+    far track (about 0.8 m away, a pose not seen before) finds the reverse. The join is
+    made (``RANGE_VOTES``)."""
+    fig, off, ids = _right_then_off(monkeypatch, 26929, "RANGE_JOINS", False)
+    assert ids.count([9]) == 2 and len(ids) == fig.n_markers + 1
+
+
+def test_distance_ranges_tell_two_markers_across_a_hinge_apart():
+    """``joins._range_z`` and ``_range_prefers`` on a made-up hinge: two child markers at
+    200 and 60 mm from the axis swing through 90 degrees about it; four parent markers see
+    them. A piece on the 200 mm marker's circle (at an angle the swing covers) lies in that
+    marker's distance ranges and far outside the other's, so the ranges prefer it; the
+    reverse they do not, and a piece between the two circles is preferred by neither."""
+    from skeleton.markersets.joins import _range_prefers, _range_z
+    rng = np.random.default_rng(0)
+    T = 400
+    th = np.deg2rad(45 + 45 * np.sin(np.linspace(0, 6 * np.pi, T)))
+    P = np.full((T, 7, 3), np.nan)
+    for i, r in ((0, 0.2), (1, 0.06)):                        # the two child markers
+        P[:300, i] = np.c_[r * np.cos(th[:300]), r * np.sin(th[:300]), np.full(300, 0.03)]
+    for j, q in enumerate([(-0.1, 0, 0), (-0.05, -0.08, 0.02), (-0.2, 0.03, -0.04),
+                           (-0.12, -0.1, 0.05)]):              # four parent markers
+        P[:, 3 + j] = q
+    P += rng.normal(0, 0.001, P.shape)
+    P[300:, 2] = np.c_[0.2 * np.cos(th[300:]), 0.2 * np.sin(th[300:]), np.full(100, 0.03)]
+    z_on, z_off = _range_z(P, 2, 0, (0, 1, 2)), _range_z(P, 2, 1, (0, 1, 2))
+    assert np.isfinite(z_on[3:]).all() and np.isnan(z_on[:3]).all()
+    assert (z_on[3:] <= 1.5).all() and (z_off[3:] >= 5).all()
+    assert _range_prefers(z_on, z_off) and not _range_prefers(z_off, z_on)
+    P[300:, 2] = np.c_[0.12 * np.cos(th[300:]), 0.12 * np.sin(th[300:]), np.full(100, 0.03)]
+    z_on, z_off = _range_z(P, 2, 0, (0, 1, 2)), _range_z(P, 2, 1, (0, 1, 2))
+    assert not _range_prefers(z_on, z_off) and not _range_prefers(z_off, z_on)
+    P[:304, 2] = np.nan                                       # four frames: too few to judge
+    P[304:, 2] = np.nan
+    assert np.isnan(_range_z(P, 2, 0, (0, 1, 2))).all()
+
+
 def test_pairing_joins_four_ids_only_where_one_pairing_is_clear():
     """``joins._pairing`` on join costs alone: four ids (0 and 2 seen early, 1 and 3 late)
     whose joins cost 1.7 (0+1), 1.0 (2+3), 2.6 (0+3) and 7.7 (2+1) - each right join with a
