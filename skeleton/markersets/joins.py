@@ -40,13 +40,13 @@ Steps 5 and 9 run the linkage (``linkage._merge_pass``) again from the package's
    the marker and its partner within the margin of each other. Where nothing above is
    joined, an id whose cheapest join has rivals within the margin on its side only is
    joined where the distance ranges other tracks keep to each candidate rule every rival
-   out: at least ``RANGE_VOTES`` (3) tracks, and that many times those finding the reverse,
+   out: at least ``RANGE_VOTES`` (2) tracks, and that many times those finding the reverse,
    find the id within ``RANGE_FIT_Z`` (1.5) x the distance's sd of the join's range and
    ``RANGE_OFF_Z`` (5) x outside the rival's (``RANGE_JOINS``, stop 77, ``_range_join``).
    A marker across a joint from a track keeps its distance to it between bounds the joint
    sets. Held-out figures 26928 (marker 35's last 15 frames: joins 2.11 and 4.62 to its
    partner; 4 tracks against none) and 26929 (marker 9's last 15: 2.60, 5.36 and 5.99;
-   12 tracks against 1 for the partner).
+   15 tracks against 1 for the partner, 18 against none for marker 7).
 9. step 8 can leave a marker as two ids, as the swap repair can (step 5): in figure 1833
    (held out, first run at stop 34) the linkage merged marker 17 right, the swap repair
    moved its first fragment out and a piece of marker 15 (same segment) in, and step 8
@@ -258,7 +258,7 @@ def _range_prefers(zb, zc) -> bool:
     (``RANGE_OFF_Z``) number at least ``RANGE_VOTES`` times those that find the reverse,
     and at least ``RANGE_VOTES``. Far tracks can find the right marker off: a pose not
     seen before moves the ends of the distance's range (held-out figure 26929: marker 9's
-    last 15 frames against its partner 8, 12 tracks for 9 and 1 for 8)."""
+    last 15 frames against its partner 8, 15 tracks for 9 and 1 for 8)."""
     with np.errstate(invalid="ignore"):
         fit_b, off_b = zb <= rules.RANGE_FIT_Z, zb >= rules.RANGE_OFF_Z
         fit_c, off_c = zc <= rules.RANGE_FIT_Z, zc >= rules.RANGE_OFF_Z

@@ -136,6 +136,17 @@ Since stop 76:
   sat at the end of marker 31 (its 4-marker parent segment's), whose mates find them 5.04,
   1.66 and 3.99 x; the move lowers the cost from 2.38 to 0.83.
 
+Since stop 77 a piece that no mate of its marker judges moves to the one marker free over
+its frames (and paced) where the distance ranges other tracks keep to that marker hold it
+and those they keep to its own marker (without it) rule it out - step 7b's
+``RANGE_JOINS`` test, ``_range_prefers`` - where the move does not raise the two markers'
+continuity cost (``MODEL_RANGE_MOVES``, ``_range_move``). A marker across a joint from a
+track keeps its distance to it between bounds the joint sets. Held-out figure 26623 (stop
+76): marker 15's last 23 frames (2-marker segment 6, both markers hidden before them) sat
+at the end of its partner 16; two markers of the child segment find them in marker 15's
+ranges and 7.6 and 8.3 x their sd outside marker 16's; the move lowers the continuity cost
+by 1.56.
+
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations
@@ -147,6 +158,7 @@ from scipy.ndimage import distance_transform_edt
 
 from . import rules
 from .continuity import _continuity_cost
+from .joins import _range_prefers, _range_z
 from .tracks import _paced, _spans, _tracks
 
 
@@ -313,6 +325,10 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                          and max(z for z, _ in home) > rules.MODEL_FAR_Z
                          and _median_z(model.judge(f, a, fit=True)) > rules.MODEL_FIT_Z)
                 if not (off or weak or unfit):
+                    if rules.MODEL_RANGE_MOVES and not home:
+                        change = _range_move(model, vis, span, groups, f, a, max_step)
+                        if change is not None:
+                            changes.append((0.0, change))
                     continue
                 change = _destination(model, vis, span, groups, f, a, off, max_step, fixed,
                                       home_z=home[0][0] if weak else 0.0 if unfit else None)
@@ -408,6 +424,45 @@ def _open_move(model, vis, span, groups, f, a, max_step):
         new_a = [h for h in groups[a] if h != f]
         new_b = groups[b] + [f]
         if _paced(model.X, span, new_a, max_step) and _paced(model.X, span, new_b, max_step):
+            found.append((b, new_a, new_b))
+    if len(found) != 1:
+        return None
+    b, new_a, new_b = found[0]
+    if _rise(model, groups, a, b, new_a, new_b) > 0:
+        return None
+    out = [list(g) for g in groups]
+    out[a], out[b] = new_a, new_b
+    return [g for g in out if g]
+
+
+def _range_move(model, vis, span, groups, f, a, max_step):
+    """``MODEL_RANGE_MOVES``: the new groups after a piece ``f`` that no mate of its marker
+    ``a`` judges moves to the one marker free over its frames (and paced) whose distance
+    ranges to other tracks the piece keeps where a's (without f) rule it out (step 7b's
+    ``_range_z`` and ``_range_prefers``), and where the move does not raise the two
+    markers' continuity cost; or None. Held-out figure 26623 (stop 76): marker 15's last
+    23 frames (2-marker segment 6, both markers hidden before them) sat at the end of its
+    partner 16; no mate judges them on either marker, and the continuity cost (4.30 where
+    they are, 2.74 on marker 15) is within the margin. Two tracks of the child segment find
+    them within ``RANGE_FIT_Z`` of marker 15's ranges and beyond ``RANGE_OFF_Z`` outside
+    marker 16's (truth: 0 against 7.6 and 8.3 x the sd), none the reverse."""
+    P = model.P.copy()
+    P[vis[:, f], a] = np.nan
+    y = np.full((len(P), 1, 3), np.nan)
+    y[vis[:, f], 0] = model.X[vis[:, f], f]
+    P = np.concatenate([P, y], 1)
+    i = P.shape[1] - 1
+    z_home = _range_z(P, i, a, (a, i))
+    found = []
+    for b in range(len(groups)):
+        if b == a or _clash(vis, groups, b, f):
+            continue
+        new_a = [h for h in groups[a] if h != f]
+        new_b = groups[b] + [f]
+        if not (_paced(model.X, span, new_a, max_step)
+                and _paced(model.X, span, new_b, max_step)):
+            continue
+        if _range_prefers(_range_z(P, i, b, (a, b, i)), z_home):
             found.append((b, new_a, new_b))
     if len(found) != 1:
         return None

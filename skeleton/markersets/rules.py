@@ -28,7 +28,7 @@ RANGE_JOINS = True  # ... and an id whose cheapest join has rivals within the ma
 #                     the distance ranges to other tracks rule every rival out (26928)
 RANGE_OFF_Z = 5.0   # ... a track finds the id this x its distance sd outside a rival's range
 RANGE_FIT_Z = 1.5   # ... and within this x of the join's range
-RANGE_VOTES = 3     # ... on at least this many tracks, and this x those finding the reverse
+RANGE_VOTES = 2     # ... on at least this many tracks, and this x those finding the reverse
 RANGE_FRAMES = 100  # ... the range measured over at least this many frames
 JOINS_AFTER_EXCHANGES = True  # step 9: and again where step 8 exchanged (figure 4881)
 
@@ -161,6 +161,9 @@ MODEL_UNJUDGED_BACK = True  # ... an off piece's exchange takes back a piece no 
 #                             where it is, fitting its new marker, continuity not rising (26494)
 MODEL_OFF_OPEN = True  # ... an off piece no marker fits moves to the one free marker where no
 #                        mate judges it, continuity not rising (26901)
+MODEL_RANGE_MOVES = True  # ... a piece no mate judges moves to the one free marker whose
+#                           distance ranges it keeps where its own rule it out (step 7b's
+#                           RANGE_ values), continuity not rising (26623)
 MODEL_UNFIT_MOVES = True  # ... a piece neither off nor fitting (median z), a mate beyond
 #                           MODEL_FAR_Z, moves where several fit it clearly (25141: 37, 2.8, 1.2)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then

@@ -2061,7 +2061,8 @@ def test_an_end_piece_left_an_id_joins_the_marker_whose_distance_ranges_it_keeps
     their own. Step 7b's join to marker 35 costs 2.11, to its partner 34 4.62: within the
     margin (4) of each other, so neither was made. The parent segment's marker 14 is
     368-376 mm from the piece, inside marker 35's range (345-414 mm) and 186 mm outside
-    marker 34's (131-184 mm): ``RANGE_JOINS`` makes the join to 35."""
+    marker 34's (131-184 mm); four tracks find the piece so, none the reverse:
+    ``RANGE_JOINS`` makes the join to 35."""
     fig, off, ids = _right_then_off(monkeypatch, 26928, "RANGE_JOINS", False)
     assert ids.count([35]) == 2 and len(ids) == fig.n_markers + 1
     seg = fig.marker_segment
@@ -2071,12 +2072,26 @@ def test_an_end_piece_left_an_id_joins_the_marker_whose_distance_ranges_it_keeps
 def test_a_far_track_that_finds_the_right_marker_off_is_outvoted(monkeypatch):
     """Held-out figure 26929 (first run at stop 76): marker 9's last 15 frames (2-marker
     segment 3, both markers hidden before them) were an id of their own; the join to
-    marker 9 costs 2.60, to its partner 8 5.36 and to marker 7 5.99. Twelve tracks find the
+    marker 9 costs 2.60, to its partner 8 5.36 and to marker 7 5.99. Fifteen tracks find the
     piece in marker 9's distance range and 5 x their sd or more outside marker 8's; one
     far track (about 0.8 m away, a pose not seen before) finds the reverse. The join is
     made (``RANGE_VOTES``)."""
     fig, off, ids = _right_then_off(monkeypatch, 26929, "RANGE_JOINS", False)
     assert ids.count([9]) == 2 and len(ids) == fig.n_markers + 1
+
+
+def test_an_unjudged_piece_moves_to_the_free_marker_whose_distance_ranges_it_keeps(
+        monkeypatch):
+    """Held-out figure 26623 (first run at stop 76): marker 15's last 23 frames (frames
+    377-399, 2-marker segment 6, both markers hidden before them) sat at the end of its
+    partner 16. No mate judges them on either marker, and the continuity cost (4.30 where
+    they are, 2.74 on marker 15) is within the margin. Two markers of the child segment
+    find them in marker 15's distance ranges and 7.6 and 8.3 x their sd outside marker
+    16's: ``MODEL_RANGE_MOVES`` moves them to marker 15."""
+    fig, off, ids = _right_then_off(monkeypatch, 26623, "MODEL_RANGE_MOVES", False)
+    assert [15, 16] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[15] == seg[16] and (seg == seg[15]).sum() == 2
 
 
 def test_distance_ranges_tell_two_markers_across_a_hinge_apart():
