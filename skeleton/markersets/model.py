@@ -417,22 +417,9 @@ def _open_move(model, vis, span, groups, f, a, max_step):
     5.04, 1.66 and 3.99 x (off: the median beyond ``MODEL_OFF_Z``); marker 51, hidden from
     frame 348 with its partner, is the one free marker, and nothing judges the piece there;
     the move lowers the continuity cost from 2.38 to 0.83."""
-    found = []
-    for b in range(len(groups)):
-        if b == a or _clash(vis, groups, b, f) or model.judge(f, b):
-            continue
-        new_a = [h for h in groups[a] if h != f]
-        new_b = groups[b] + [f]
-        if _paced(model.X, span, new_a, max_step) and _paced(model.X, span, new_b, max_step):
-            found.append((b, new_a, new_b))
-    if len(found) != 1:
-        return None
-    b, new_a, new_b = found[0]
-    if _rise(model, groups, a, b, new_a, new_b) > 0:
-        return None
-    out = [list(g) for g in groups]
-    out[a], out[b] = new_a, new_b
-    return [g for g in out if g]
+    return _one_free_move(model, groups, a, [
+        m for m in _free_moves(model, vis, span, groups, f, a, max_step)
+        if not model.judge(f, m[0])])
 
 
 def _range_move(model, vis, span, groups, f, a, max_step):
@@ -453,17 +440,26 @@ def _range_move(model, vis, span, groups, f, a, max_step):
     P = np.concatenate([P, y], 1)
     i = P.shape[1] - 1
     z_home = _range_z(P, i, a, (a, i))
-    found = []
+    return _one_free_move(model, groups, a, [
+        m for m in _free_moves(model, vis, span, groups, f, a, max_step)
+        if _range_prefers(_range_z(P, i, m[0], (a, m[0], i)), z_home)])
+
+
+def _free_moves(model, vis, span, groups, f, a, max_step):
+    """(b, a's new fragments, b's) for each marker ``b`` free over the frames of ``a``'s
+    fragment ``f`` where a without f and b with it are paced (``_paced``)."""
     for b in range(len(groups)):
         if b == a or _clash(vis, groups, b, f):
             continue
         new_a = [h for h in groups[a] if h != f]
         new_b = groups[b] + [f]
-        if not (_paced(model.X, span, new_a, max_step)
-                and _paced(model.X, span, new_b, max_step)):
-            continue
-        if _range_prefers(_range_z(P, i, b, (a, b, i)), z_home):
-            found.append((b, new_a, new_b))
+        if _paced(model.X, span, new_a, max_step) and _paced(model.X, span, new_b, max_step):
+            yield b, new_a, new_b
+
+
+def _one_free_move(model, groups, a, found):
+    """The new groups after the one move of ``found`` (``_free_moves``' items), where it is
+    one and does not raise the two markers' continuity cost; or None."""
     if len(found) != 1:
         return None
     b, new_a, new_b = found[0]
