@@ -102,7 +102,7 @@ from scipy.sparse.csgraph import connected_components
 from . import rules
 from .continuity import _continuity_cost
 from .judges import _misfit, _off_body
-from .tracks import _fragment_sd, _paced, _pair_sd, _spans, _tracks
+from .tracks import _fragment_sd, _paced, _pair_sd, _range_prefers, _range_z, _spans, _tracks
 
 
 def _join_by_partners(X, groups, min_frames, n_min, rigid=3.0, match=3.0) -> list:
@@ -200,31 +200,6 @@ def _join_by_continuity(X, groups, n_min, max_step=np.inf) -> list:
     return groups
 
 
-def _range_z(P, a, k, skip) -> np.ndarray:
-    """Per track t of ``P`` (not in ``skip``): how far the track ``a`` lies outside the
-    range of distances from t that track ``k`` keeps, in units of that distance's sd: the
-    median over a's frames of the miss beyond the 1st-99th percentile. The range needs
-    ``RANGE_FRAMES`` frames of k with t, the verdict ``SPHERE_POINTS`` frames of a with t;
-    NaN where either is short. A marker across a joint from t keeps its distance between
-    bounds the joint sets (``RANGE_JOINS``)."""
-    z = np.full(P.shape[1], np.nan)
-    for t in range(P.shape[1]):
-        if t in skip:
-            continue
-        dk = np.linalg.norm(P[:, k] - P[:, t], axis=1)
-        dk = dk[np.isfinite(dk)]
-        da = np.linalg.norm(P[:, a] - P[:, t], axis=1)
-        da = da[np.isfinite(da)]
-        if len(dk) < rules.RANGE_FRAMES or len(da) < rules.SPHERE_POINTS:
-            continue
-        sd = dk.std()
-        if not sd > 0:
-            continue
-        lo, hi = np.percentile(dk, [1, 99])
-        z[t] = np.median(np.maximum(0.0, np.maximum(lo - da, da - hi))) / sd
-    return z
-
-
 def _range_join(P, C):
     """Step 7b's ``RANGE_JOINS``: an id ``a`` whose cheapest join ``b`` costs at most
     ``CONTINUITY_MARGIN`` but has rivals within the margin of it (only among a's joins:
@@ -251,19 +226,6 @@ def _range_join(P, C):
         if all(_range_prefers(zb, _range_z(P, a, c, (a, b, c))) for c in rivals):
             best = (C[a, b], min(a, b), max(a, b))
     return None if best is None else best[1:]
-
-
-def _range_prefers(zb, zc) -> bool:
-    """The tracks that find the piece in b's range (``RANGE_FIT_Z``) and off c's
-    (``RANGE_OFF_Z``) number at least ``RANGE_VOTES`` times those that find the reverse,
-    and at least ``RANGE_VOTES``. Far tracks can find the right marker off: a pose not
-    seen before moves the ends of the distance's range (held-out figure 26929: marker 9's
-    last 15 frames against its partner 8, 15 tracks for 9 and 1 for 8)."""
-    with np.errstate(invalid="ignore"):
-        fit_b, off_b = zb <= rules.RANGE_FIT_Z, zb >= rules.RANGE_OFF_Z
-        fit_c, off_c = zc <= rules.RANGE_FIT_Z, zc >= rules.RANGE_OFF_Z
-    n_b, n_c = int((fit_b & off_c).sum()), int((fit_c & off_b).sum())
-    return n_b >= rules.RANGE_VOTES * max(n_c, 1)
 
 
 def _matchings(K, C):

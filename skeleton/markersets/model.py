@@ -158,8 +158,7 @@ from scipy.ndimage import distance_transform_edt
 
 from . import rules
 from .continuity import _continuity_cost
-from .joins import _range_prefers, _range_z
-from .tracks import _paced, _spans, _tracks
+from .tracks import _paced, _range_prefers, _range_z, _spans, _tracks
 
 
 def _robust(d: np.ndarray, min_frames: int) -> tuple[np.ndarray, np.ndarray]:

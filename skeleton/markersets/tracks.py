@@ -3,7 +3,8 @@
 A track is the (T, 3) positions of a set of fragments (NaN where none is seen); the sd of
 the distance between two tracks over their common frames measures rigidity (s0: the median
 sd of pairs moving as one body, ``_pair_sd``). Also: exchanges of runs between two markers,
-the speed gate on a gap (``_paced``), and the Kabsch fit the pose alignment and body
+the speed gate on a gap (``_paced``), the distance ranges steps 7b and 12 judge pieces
+by (``_range_z``, ``_range_prefers``), and the Kabsch fit the pose alignment and body
 frames use.
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
@@ -13,6 +14,8 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+
+from . import rules
 
 
 def _kabsch_batch(src, dst):
@@ -179,3 +182,41 @@ def _gap(fa: np.ndarray, fb: np.ndarray) -> int:
     after = np.abs(fb[np.minimum(k, fb.size - 1)] - fa)
     before = np.abs(fb[np.maximum(k - 1, 0)] - fa)
     return int(np.minimum(after, before).min())
+
+
+def _range_z(P, a, k, skip) -> np.ndarray:
+    """Per track t of ``P`` (not in ``skip``): how far the track ``a`` lies outside the
+    range of distances from t that track ``k`` keeps, in units of that distance's sd: the
+    median over a's frames of the miss beyond the 1st-99th percentile. The range needs
+    ``RANGE_FRAMES`` frames of k with t, the verdict ``SPHERE_POINTS`` frames of a with t;
+    NaN where either is short. A marker across a joint from t keeps its distance between
+    bounds the joint sets (``RANGE_JOINS``)."""
+    z = np.full(P.shape[1], np.nan)
+    for t in range(P.shape[1]):
+        if t in skip:
+            continue
+        dk = np.linalg.norm(P[:, k] - P[:, t], axis=1)
+        dk = dk[np.isfinite(dk)]
+        da = np.linalg.norm(P[:, a] - P[:, t], axis=1)
+        da = da[np.isfinite(da)]
+        if len(dk) < rules.RANGE_FRAMES or len(da) < rules.SPHERE_POINTS:
+            continue
+        sd = dk.std()
+        if not sd > 0:
+            continue
+        lo, hi = np.percentile(dk, [1, 99])
+        z[t] = np.median(np.maximum(0.0, np.maximum(lo - da, da - hi))) / sd
+    return z
+
+
+def _range_prefers(zb, zc) -> bool:
+    """The tracks that find the piece in b's range (``RANGE_FIT_Z``) and off c's
+    (``RANGE_OFF_Z``) number at least ``RANGE_VOTES`` times those that find the reverse,
+    and at least ``RANGE_VOTES``. Far tracks can find the right marker off: a pose not
+    seen before moves the ends of the distance's range (held-out figure 26929: marker 9's
+    last 15 frames against its partner 8, 15 tracks for 9 and 1 for 8)."""
+    with np.errstate(invalid="ignore"):
+        fit_b, off_b = zb <= rules.RANGE_FIT_Z, zb >= rules.RANGE_OFF_Z
+        fit_c, off_c = zc <= rules.RANGE_FIT_Z, zc >= rules.RANGE_OFF_Z
+    n_b, n_c = int((fit_b & off_c).sum()), int((fit_c & off_b).sum())
+    return n_b >= rules.RANGE_VOTES * max(n_c, 1)

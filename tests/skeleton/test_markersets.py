@@ -2102,12 +2102,12 @@ def test_an_unjudged_piece_moves_to_the_free_marker_whose_distance_ranges_it_kee
 
 
 def test_distance_ranges_tell_two_markers_across_a_hinge_apart():
-    """``joins._range_z`` and ``_range_prefers`` on a made-up hinge: two child markers at
+    """``tracks._range_z`` and ``_range_prefers`` on a made-up hinge: two child markers at
     200 and 60 mm from the axis swing through 90 degrees about it; four parent markers see
     them. A piece on the 200 mm marker's circle (at an angle the swing covers) lies in that
     marker's distance ranges and far outside the other's, so the ranges prefer it; the
     reverse they do not, and a piece between the two circles is preferred by neither."""
-    from skeleton.markersets.joins import _range_prefers, _range_z
+    from skeleton.markersets.tracks import _range_prefers, _range_z
     rng = np.random.default_rng(0)
     T = 400
     th = np.deg2rad(45 + 45 * np.sin(np.linspace(0, 6 * np.pi, T)))
