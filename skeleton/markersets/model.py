@@ -147,6 +147,15 @@ at the end of its partner 16; two markers of the child segment find them in mark
 ranges and 7.6 and 8.3 x their sd outside marker 16's; the move lowers the continuity cost
 by 1.56.
 
+Since stop 78 a rotation (``MODEL_ROTATIONS``) is judged without the three pieces it moves
+on the mates' tracks (``ROTATION_MOVERS``): a mate holding another of the rotated pieces
+over the frames judged misplaces the piece by that piece's error. Held-out figure 29639
+(stop 77): the last pieces of markers 15, 47 and 49 (47 and 49 on one 2-marker segment)
+sat on 47, 49 and 15; marker 15's piece is 19.4 and 20.7 x off marker 47's mates and fits
+marker 15's (1.2 x), but marker 49's piece, coming back from marker 15, missed marker 49's
+mates by 0.97 and 6.76 x - the second mate held marker 15's piece over those frames.
+Without it the mates find it 0.97 and 0.98 x.
+
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations
@@ -515,9 +524,11 @@ def _rotations(model, vis, span, groups, f, a, b, h, max_step, fixed=()) -> list
         if len(clash) != 1 or clash[0] in fixed:
             continue
         r = clash[0]
-        if (not _fits(model.judge(h, c, without=clash, fit=True))
-                or _fits(model.judge(r, c, fit=True))
-                or not _takes(model.judge(r, a, without=(f,), fit=True))):
+        # the mates' tracks without the pieces the rotation moves (``ROTATION_MOVERS``)
+        movers = rules.ROTATION_MOVERS
+        if (not _fits(model.judge(h, c, without=[r, f] if movers else clash, fit=True))
+                or _fits(model.judge(r, c, without=(f, h) if movers else (), fit=True))
+                or not _takes(model.judge(r, a, without=(f, h) if movers else (f,), fit=True))):
             continue
         new = {a: [x for x in groups[a] if x != f] + [r],
                b: [x for x in groups[b] if x != h] + [f],

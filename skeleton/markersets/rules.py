@@ -142,6 +142,7 @@ MODEL_STRONGER = True   # ... a piece fitting one mate moves where it fits sever
 MODEL_STRONG_MATES = 2  # ... that many
 MODEL_ROUNDS = 20       # ... one change a round
 MODEL_ROTATIONS = True  # ... three pieces moved round three markers where no exchange fits (17802)
+ROTATION_MOVERS = True  # ... judged without the three moving pieces on the mates' tracks (29639)
 MODEL_NEAR_MATES = True  # ... a mate vetoes a fit only where it finds the marker's own
 #                          frames nearest the piece within MODEL_FIT_Z (17888)
 MODEL_UNSURE = True      # ... a piece one mate judges, fitting or not, moves where it fits

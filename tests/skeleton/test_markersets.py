@@ -1932,6 +1932,21 @@ def test_model_check_moves_three_pieces_round_three_markers(monkeypatch):
     assert len({seg[6], seg[22], seg[42]}) == 3
 
 
+def test_a_rotation_is_judged_without_the_pieces_it_moves(monkeypatch):
+    """Held-out figure 29639 (first run at stop 77): the last pieces of markers 15, 47 and
+    49 (3-marker segment 5; 47 and 49 on 2-marker segment 16) sat on 47, 49 and 15. Marker
+    15's piece lies 19.4 and 20.7 x off marker 47's mates and fits marker 15's (1.2 x);
+    marker 49's piece, coming back from marker 15, fits marker 49's mates (0.97 and 0.98
+    x) only once the mates' tracks leave out the pieces the rotation moves: with marker
+    15's piece still on marker 47, that mate finds it 6.76 x off, so ``MODEL_ROTATIONS``
+    took nothing. ``ROTATION_MOVERS`` judges without them. Without it the three stay
+    rotated."""
+    fig, _, ids = _right_then_off(monkeypatch, 29639, "ROTATION_MOVERS", False)
+    assert [15, 49] in ids and [47, 49] in ids and [15, 47] in ids
+    seg = fig.marker_segment
+    assert seg[47] == seg[49] != seg[15]
+
+
 def test_model_check_drops_a_drifting_mate_and_joins_the_marker_left_free(monkeypatch):
     """Held-out figure 17888 (first run at stop 66): marker 1's first 29 frames sat on
     marker 17 (3-marker segment 6), 2.8 x off the one mate seeing them there, and marker
