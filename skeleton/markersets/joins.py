@@ -40,13 +40,16 @@ Steps 5 and 9 run the linkage (``linkage._merge_pass``) again from the package's
    the marker and its partner within the margin of each other. Where nothing above is
    joined, an id whose cheapest join has rivals within the margin on its side only is
    joined where the distance ranges other tracks keep to each candidate rule every rival
-   out: at least ``RANGE_VOTES`` (2) tracks, and that many times those finding the reverse,
-   find the id within ``RANGE_FIT_Z`` (1.5) x the distance's sd of the join's range and
+   out: at least ``RANGE_VOTES`` (1; 2 until stop 78) tracks, and ``RANGE_RATIO`` (2) times
+   those finding the reverse, find the id within ``RANGE_FIT_Z`` (1.5) x the distance's sd of the join's range and
    ``RANGE_OFF_Z`` (5) x outside the rival's (``RANGE_JOINS``, stop 77, ``_range_join``).
    A marker across a joint from a track keeps its distance to it between bounds the joint
    sets. Held-out figures 26928 (marker 35's last 15 frames: joins 2.11 and 4.62 to its
    partner; 4 tracks against none) and 26929 (marker 9's last 15: 2.60, 5.36 and 5.99;
-   15 tracks against 1 for the partner, 18 against none for marker 7).
+   15 tracks against 1 for the partner, 18 against none for marker 7). Since stop 78 one
+   track against none joins: held-out figure 29501 (marker 13's last 10 frames: joins 1.97
+   and 3.65 to its partner 12; 0.98 x in 13's range and 6.72 x outside 12's on the one
+   track, none the reverse).
 9. step 8 can leave a marker as two ids, as the swap repair can (step 5): in figure 1833
    (held out, first run at stop 34) the linkage merged marker 17 right, the swap repair
    moved its first fragment out and a piece of marker 15 (same segment) in, and step 8

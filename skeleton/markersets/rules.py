@@ -28,7 +28,8 @@ RANGE_JOINS = True  # ... and an id whose cheapest join has rivals within the ma
 #                     the distance ranges to other tracks rule every rival out (26928)
 RANGE_OFF_Z = 5.0   # ... a track finds the id this x its distance sd outside a rival's range
 RANGE_FIT_Z = 1.5   # ... and within this x of the join's range
-RANGE_VOTES = 2     # ... on at least this many tracks, and this x those finding the reverse
+RANGE_VOTES = 1     # ... on at least this many tracks (2 until stop 78; 29501: 1 against 0)
+RANGE_RATIO = 2     # ... and this x those finding the reverse (26929: 15 against 1)
 RANGE_FRAMES = 100  # ... the range measured over at least this many frames
 JOINS_AFTER_EXCHANGES = True  # step 9: and again where step 8 exchanged (figure 4881)
 

@@ -2097,9 +2097,22 @@ def test_a_far_track_that_finds_the_right_marker_off_is_outvoted(monkeypatch):
     marker 9 costs 2.60, to its partner 8 5.36 and to marker 7 5.99. Fifteen tracks find the
     piece in marker 9's distance range and 5 x their sd or more outside marker 8's; one
     far track (about 0.8 m away, a pose not seen before) finds the reverse. The join is
-    made (``RANGE_VOTES``)."""
+    made (``RANGE_RATIO``)."""
     fig, off, ids = _right_then_off(monkeypatch, 26929, "RANGE_JOINS", False)
     assert ids.count([9]) == 2 and len(ids) == fig.n_markers + 1
+
+
+def test_one_track_with_none_against_decides_a_join(monkeypatch):
+    """Held-out figure 29501 (first run at stop 77): marker 13's last 10 frames (frames
+    390-399, 2-marker segment 4; both markers hidden from frame 362, the partner for good)
+    were an id of their own: the join to marker 13 costs 1.97, to its partner 12 3.65,
+    within the margin. One track finds the piece 0.98 x its sd inside marker 13's distance
+    range and 6.72 x outside 12's; none finds the reverse. With ``RANGE_VOTES`` 2 (stop 77)
+    the id stays; with 1 it joins marker 13."""
+    fig, off, ids = _right_then_off(monkeypatch, 29501, "RANGE_VOTES", 2)
+    assert ids.count([13]) == 2 and len(ids) == fig.n_markers + 1
+    seg = fig.marker_segment
+    assert seg[12] == seg[13] and (seg == seg[13]).sum() == 2
 
 
 def test_an_unjudged_piece_moves_to_the_free_marker_whose_distance_ranges_it_keeps(
