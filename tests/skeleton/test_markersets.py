@@ -2073,8 +2073,11 @@ def test_two_markers_left_as_two_ids_each_are_joined_by_the_clear_pairing(monkey
     2-marker hinge segment 11, hidden over frames 232-270 and 267-296, were each left as
     two ids. Step 7b's joins cost 1.70 (marker 33) and 1.02 (marker 34), the crossed ones
     2.55 and 7.65, so each right join has a rival within the margin (4) and none was made.
-    The right pairing costs 2.72 in all, the crossed one 10.20: ``PAIR_JOINS`` makes it."""
-    fig, off, ids = _right_then_off(monkeypatch, 26100, "PAIR_JOINS", False)
+    The right pairing costs 2.72 in all, the crossed one 10.20: ``PAIR_JOINS`` makes it.
+    Since stop 78 ``RANGE_JOINS`` (``RANGE_VOTES`` 1) joins the two right as well, so the
+    failure is set up with it off too."""
+    fig, off, ids = _right_then_off(monkeypatch, 26100, "PAIR_JOINS", False,
+                                    failure_also={"RANGE_JOINS": False})
     assert ids.count([33]) == 2 and ids.count([34]) == 2
     seg = fig.marker_segment
     assert seg[33] == seg[34] and (seg == seg[33]).sum() == 2
