@@ -68,17 +68,27 @@ def _jump_ss(X, vis, frags, Pq):
             d = np.linalg.norm(Pq[vis[:, f]] - X[vis[:, f], f][:, None], axis=2)
         n = (~np.isnan(d)).sum(0)
         s = np.nansum(d, 0)
-        stats[f] = (n, s, s ** 2 / np.maximum(n, 1))      # n x mean^2
+        # n, sum, n x mean^2, within-fragment sum of squares about its mean
+        stats[f] = (n, s, s ** 2 / np.maximum(n, 1),
+                    np.nansum(d ** 2, 0) - s ** 2 / np.maximum(n, 1))
 
     def ss(g):
         n = sum(stats[f][0] for f in g)
         s = sum(stats[f][1] for f in g)
         return sum(stats[f][2] for f in g) - s ** 2 / np.maximum(n, 1)
     ss.judges = lambda g: sum((stats[f][0] > 0).astype(int) for f in g) >= 2
+
+    def noise():
+        # (Q,) pooled within-fragment distance variance per partner (NaN where unseen)
+        dof = sum(np.maximum(stats[f][0] - 1, 0) for f in frags)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return sum(stats[f][3] for f in frags) / np.where(dof > 0, dof, np.nan)
+    ss.noise = noise
     return ss
 
 
-def _jumps(X, vis, ga0, gb0, alts, Pq, margin, per_marker=False, seen_twice=False):
+def _jumps(X, vis, ga0, gb0, alts, Pq, margin, per_marker=False, seen_twice=False,
+           s0=None):
     """Step 4's jump costs of two markers' fragments (ga0, gb0) and of their alternatives
     ``alts``: (now, costs (len(alts),)), each the sum over both markers and the partners of
     ``_jump_ss``, over the partners only that sit at constant distances from the fragments
@@ -89,8 +99,20 @@ def _jumps(X, vis, ga0, gb0, alts, Pq, margin, per_marker=False, seen_twice=Fals
     drifts, and still tells where the first marker's pieces belong (figure 9533). With
     ``seen_twice`` a partner fits an assignment only where it is seen with two or more
     fragments of one of its markers (``JUMPS_SEEN_TWICE``): one it sees a single fragment
-    of in each marker fits there at no cost, whatever it is (figure 16029)."""
+    of in each marker fits there at no cost, whatever it is (figure 16029). With ``s0``
+    each partner's costs are scaled by s0^2 / its pooled within-fragment distance variance
+    (s0^2 at least; ``JUMPS_OWN_NOISE``): a partner across a joint drifts, and the same
+    jump there tells less (figure 31380: 2.25 mm sd against s0 1.37 mm)."""
     ss = _jump_ss(X, vis, ga0 + gb0, Pq)
+    if s0 is not None:
+        raw = ss
+        var = raw.noise()
+        with np.errstate(invalid="ignore"):
+            w = np.where(np.isfinite(var), s0 ** 2 / np.maximum(var, s0 ** 2), 1.0)
+
+        def ss(g):
+            return raw(g) * w
+        ss.judges = raw.judges
     if per_marker:
         now = np.stack([ss(ga0), ss(gb0)])                               # (2, Q)
         costs = np.array([np.stack([ss(ga), ss(gb)]) for ga, gb in alts]
@@ -109,11 +131,13 @@ def _jumps(X, vis, ga0, gb0, alts, Pq, margin, per_marker=False, seen_twice=Fals
     return float(now[fits].sum()), costs[:, fits].sum(1)
 
 
-def _best_by_jumps(X, vis, ga0, gb0, alts, Pq, margin):
+def _best_by_jumps(X, vis, ga0, gb0, alts, Pq, margin, s0=None):
     """The alternative (ga, gb) with the least jump cost (``_jumps``), if it is at least
-    ``margin`` (m^2) below that of (ga0, gb0); else None."""
+    ``margin`` (m^2) below that of (ga0, gb0); else None. ``s0``: the partners in units of
+    their own noise (``JUMPS_OWN_NOISE``)."""
     now, costs = _jumps(X, vis, ga0, gb0, alts, Pq, margin,
-                        seen_twice=rules.JUMPS_SEEN_TWICE)
+                        seen_twice=rules.JUMPS_SEEN_TWICE,
+                        s0=s0 if rules.JUMPS_OWN_NOISE else None)
     i = int(np.argmin(costs))
     return alts[i] if costs[i] <= now - margin else None
 

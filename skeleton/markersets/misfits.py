@@ -188,7 +188,8 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
             for f in g:
                 kept = [h for h in g if h != f]
                 miss, judges = _misfit(X, vis, P, sd_of, f, kept, [a], rigid * s0, bound,
-                                       voter_frames, with_judges=True)
+                                       voter_frames, with_judges=True,
+                                       drift=drift if rules.HOME_DRIFT else None)
                 # judges that find f where its marker is (an off-body piece can have some)
                 at_home = set(judges[miss <= bound].tolist())
                 off = _off_body(X, vis, P, sd_of, f, kept, [a], rigid * s0, one_body * s0,

@@ -44,6 +44,8 @@ SPHERE_JOINS_PAIRS = True  # ... judging in two-track bodies' frames too (``_pai
 
 JUMPS_SEEN_TWICE = True  # step 4's jumps: a partner fits only where it sees two fragments
 #                          of one marker (figure 16029)
+JUMPS_OWN_NOISE = True   # ... each partner in units of its own within-fragment noise
+#                          variance, s0^2 at least: a partner across a joint drifts (31380)
 TURN_FALLBACK = True   # step 4: a pair moving as one body whose partners decide nothing turns
 
 KEPT_TRACK_VOTES = True    # step 4b: a marker without voters is judged by its kept track
@@ -91,6 +93,7 @@ SPLIT_BODY_STAYS = True  # step 4c: an off-body piece every judge at home fits s
 #                          one-body track there holds it too (figure 11934)
 DRIFT_JUDGES = True   # steps 4c and 10: on the marker a piece would move to, a judge that
 #                       drifts across a joint allows for its drift (figures 12450, 12460)
+HOME_DRIFT = True     # step 4c: on the piece's own marker too (figure 31380)
 TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that does not
 #                          also find the piece on its own (figure 4083)
 HOME_MAJORITY_STAYS = True  # step 4c: an off-body piece most of whose judges at home fit it

@@ -164,7 +164,7 @@ def _repair_swaps(X, groups, min_frames, margin, rigid_pair=5.0, rigid_partner=3
                 if found is None and strict.size:
                     # a short piece barely moves the sd: the jumps between fragments instead
                     ga = _best_by_jumps(X, vis, groups[a], groups[b], alts, P[:, strict],
-                                        jump_margin * s0 ** 2)
+                                        jump_margin * s0 ** 2, s0)
                     if ga is not None:
                         found = ga
                 if found is None and rules.TURN_FALLBACK and S[a, b] <= one_body * s0:
