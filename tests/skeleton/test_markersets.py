@@ -2121,6 +2121,22 @@ def test_one_track_with_none_against_decides_a_join(monkeypatch):
     assert seg[12] == seg[13] and (seg == seg[13]).sum() == 2
 
 
+@pytest.mark.parametrize("flag", ["JUMPS_OWN_NOISE", "HOME_DRIFT"])
+def test_a_drifting_judge_counts_in_its_own_noise(monkeypatch, flag):
+    """Held-out figure 31380 (first run at stop 78): marker 26's last 10 frames (frames
+    387-396, 4-marker hinge segment 7) were put on its mate 25 by step 4's jump test. Their
+    one judge is marker 12 across the hinge (3-marker segment 4), 355.3 and 356.6 mm from
+    markers 26 and 25, whose distance to marker 26 drifts by 2.25 mm sd (s0: 1.37 mm); the
+    piece's mean is 356.8 mm. Counted in s0 its jump (2.47e-5 against 2.67e-6 m^2) clears
+    the margin; counted in the judge's own noise (``JUMPS_OWN_NOISE``) it does not, and
+    step 4c's home misfit test then allows for the drift too (``HOME_DRIFT``). Without
+    either the piece ends on marker 25."""
+    fig, _, ids = _right_then_off(monkeypatch, 31380, flag, False)
+    assert [25, 26] in ids and [26] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[25] == seg[26] != seg[12] and (seg == seg[26]).sum() == 4
+
+
 def test_an_unjudged_piece_moves_to_the_free_marker_whose_distance_ranges_it_keeps(
         monkeypatch):
     """Held-out figure 26623 (first run at stop 76): marker 15's last 23 frames (frames
