@@ -68,9 +68,9 @@ def _jump_ss(X, vis, frags, Pq):
             d = np.linalg.norm(Pq[vis[:, f]] - X[vis[:, f], f][:, None], axis=2)
         n = (~np.isnan(d)).sum(0)
         s = np.nansum(d, 0)
+        nm2 = s ** 2 / np.maximum(n, 1)                   # n x mean^2
         # n, sum, n x mean^2, within-fragment sum of squares about its mean
-        stats[f] = (n, s, s ** 2 / np.maximum(n, 1),
-                    np.nansum(d ** 2, 0) - s ** 2 / np.maximum(n, 1))
+        stats[f] = (n, s, nm2, np.nansum(d ** 2, 0) - nm2)
 
     def ss(g):
         n = sum(stats[f][0] for f in g)
