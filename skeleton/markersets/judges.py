@@ -229,6 +229,30 @@ def _off_body(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, body_fr
     return bool((ss(kept + [f]) - ss(kept) > bound).any())
 
 
+def _unseen_pose(d, kept_frames, piece_frames, margin, pair_frames) -> bool:
+    """Two tracks' distance ``d`` (T,) over a piece's frames (``piece_frames``) is at a
+    pose not seen over a marker's other frames (``kept_frames``): there they are not rigid
+    (distance sd above ``margin``, over >= ``pair_frames`` frames), and over the piece its
+    mean lies outside their range by more than ``margin`` (``NOVEL_POSE_ASIDE``)."""
+    seen = ~np.isnan(d)
+    k, p = d[kept_frames & seen], d[piece_frames & seen]
+    if k.size < pair_frames or p.size == 0 or k.std() <= margin:
+        return False
+    return bool(p.mean() > k.max() + margin or p.mean() < k.min() - margin)
+
+
+def _novel_pose(vis, P, f, kept, fit, others, margin, pair_frames) -> list:
+    """The tracks of ``others`` (indices into P) at a pose to a judge of ``fit`` (tracks
+    that find fragment ``f`` on the marker of the fragments ``kept``) over f's frames not
+    seen over the kept frames (``_unseen_pose``; figure 33057). Such a track is across a
+    joint from that judge, at an angle where its distance to f's marker was never
+    measured."""
+    kv, fv = vis[:, kept].any(1), vis[:, f]
+    return [int(j) for j in others
+            if any(_unseen_pose(np.linalg.norm(P[:, j] - P[:, h], axis=1), kv, fv, margin,
+                                pair_frames) for h in fit)]
+
+
 def _fits(costs, bound) -> bool:
     """``_misfit``'s costs say the fragment fits: some judge, and every one within
     ``bound``."""

@@ -147,7 +147,8 @@ from . import rules
 from .bodies import _sphere_pick
 from .continuity import _continuity_cost
 from .judges import (
-    _body_sds, _fits, _fits_on, _jump_ss, _misfit, _off_body, _placed, _tells, _unjudged_on
+    _body_sds, _fits, _fits_on, _jump_ss, _misfit, _novel_pose, _off_body, _placed, _tells,
+    _unjudged_on
 )
 from .tracks import (
     _cross_alternatives, _fragment_sd, _paced, _pair_sd, _spans, _tracks
@@ -190,10 +191,22 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                 miss, judges = _misfit(X, vis, P, sd_of, f, kept, [a], rigid * s0, bound,
                                        voter_frames, with_judges=True,
                                        drift=drift if rules.HOME_DRIFT else None)
+                aside = []
+                if rules.NOVEL_POSE_ASIDE and (miss <= bound).any():
+                    # tracks that find f off at a pose to a home judge that fits it never
+                    # seen over its marker's other frames: across a joint (figure 33057)
+                    fit = judges[miss <= bound]
+                    one, _ = _body_sds(vis, P, sd_of, f, kept, [a], one_body * s0,
+                                       voter_frames)
+                    aside = _novel_pose(vis, P, f, kept, fit,
+                                        sorted((set(judges[miss > bound].tolist())
+                                                | set(one.tolist())) - set(fit.tolist())),
+                                        rules.NOVEL_POSE_SD * s0, voter_frames)
+                    miss, judges = miss[~np.isin(judges, aside)], judges[~np.isin(judges, aside)]
                 # judges that find f where its marker is (an off-body piece can have some)
                 at_home = set(judges[miss <= bound].tolist())
-                off = _off_body(X, vis, P, sd_of, f, kept, [a], rigid * s0, one_body * s0,
-                                bound, voter_frames)
+                off = _off_body(X, vis, P, sd_of, f, kept, [a] + aside, rigid * s0,
+                                one_body * s0, bound, voter_frames)
                 if (off and rules.SPLIT_BODY_STAYS and _fits(miss, bound)
                         and _body_holds(X, vis, P, sd_of, f, kept, [a], rigid * s0,
                                         one_body * s0, bound, voter_frames)):

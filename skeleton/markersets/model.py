@@ -167,6 +167,7 @@ from scipy.ndimage import distance_transform_edt
 
 from . import rules
 from .continuity import _continuity_cost
+from .judges import _unseen_pose
 from .tracks import _paced, _range_prefers, _range_z, _spans, _tracks
 
 
@@ -265,8 +266,16 @@ class _Model:
                 d_near = np.linalg.norm(P[near, j] - Pk[near], axis=1) - c[col]
                 if len(near) and np.sqrt(np.mean(d_near ** 2)) / unit > rules.MODEL_FIT_Z:
                     continue
-            out.append((z, n))
-        return out
+            out.append((z, n, j, t))
+        if rules.NOVEL_POSE_ASIDE:
+            # a mate that finds f off at a pose to a mate that fits it never seen over the
+            # marker's own frames is across a joint from that mate (figure 33057)
+            margin = rules.NOVEL_POSE_SD * self.s0
+            fit_ = [(j, t) for z, _, j, t in out if z <= rules.MODEL_FIT_Z]
+            out = [o for o in out if o[0] <= rules.MODEL_FIT_Z or not any(
+                _unseen_pose(np.linalg.norm(P[:, o[2]] - P[:, h], axis=1), own, t & o[3],
+                             margin, rules.MODEL_PAIR_FRAMES) for h, t in fit_)]
+        return [(z, n) for z, n, _, _ in out]
 
 
 def _off(js) -> bool:
