@@ -136,6 +136,18 @@
    and 0.38 x on the other two, went by a one-sided exchange onto marker 36's first piece
    (2-marker segment 12), free once step 4c had taken marker 35's piece off it, where one
    judge fitted it over 19 frames.
+   At home, a track that finds a piece off (a judge beyond the bound, or a one-body track)
+   is set aside where it is at a pose to a judge that fits the piece not seen over the
+   marker's other fragments (``NOVEL_POSE_ASIDE``, stop 80, ``judges._novel_pose``: the two
+   not rigid over those frames, distance sd above ``NOVEL_POSE_SD`` (3) x s0, and over the
+   piece at a mean distance out of their range there by more than that). A marker near a
+   joint axis moves as one body with markers across the joint over the angles seen, and
+   the piece may be at another angle. Held-out figure 33057 (stop 79): marker 1's first 10
+   frames (2-marker root segment {0, 1}) fitted marker 0 (0.16 x the bound) but were 47.9
+   and 5.8 x off markers 7 and 8 (a hinge child, one body with marker 1 over its other
+   frames, sd 1.81 and 2.24 mm), and moved to marker 10, whose partner fitted them. Over
+   the piece marker 7 is 200.3-203.4 mm from marker 0, against 137.1-191.8 mm (sd 14.5)
+   over marker 1's other frames; marker 8 343.7-347.0 against 281.7-335.2 mm.
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """

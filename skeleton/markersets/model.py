@@ -156,6 +156,16 @@ marker 15's (1.2 x), but marker 49's piece, coming back from marker 15, missed m
 mates by 0.97 and 6.76 x - the second mate held marker 15's piece over those frames.
 Without it the mates find it 0.97 and 0.98 x.
 
+Since stop 80 a mate that misses a piece (beyond ``MODEL_FIT_Z``) is set aside where a mate
+that fits it is, over the piece's frames, at a pose to it not seen over the marker's own
+frames (``NOVEL_POSE_ASIDE``, ``judges._unseen_pose``: the two not rigid there, distance sd
+above ``NOVEL_POSE_SD`` x s0, and the piece's mean distance out of their range by more than
+that). A marker near a joint axis keeps its distance to markers across the joint over the
+angles it was seen at, not over new ones. Held-out figure 33057 (stop 79): marker 1's
+first 10 frames (2-marker root segment) were judged 0.98 and 5.66 x by two mates (median
+3.32: off) and moved to marker 10 of a child segment; the 5.66 mate is across a hinge from
+the fitting one, at 200.3-203.4 mm from it over the piece against 137.1-191.8 mm before.
+
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations

@@ -2152,6 +2152,22 @@ def test_a_drifting_judge_counts_in_its_own_noise(monkeypatch, flag):
     assert seg[25] == seg[26] != seg[12] and (seg == seg[26]).sum() == 4
 
 
+def test_a_judge_at_a_pose_never_seen_is_set_aside(monkeypatch):
+    """Held-out figure 33057 (first run at stop 79): marker 1's first 10 frames (frames 0-9,
+    2-marker root segment {0, 1}) fit marker 0 (0.16 x step 4c's bound) but are 47.9 and
+    5.8 x off markers 7 and 8, of a hinge child, which move as one body with marker 1 over
+    its other frames (sd 1.81 and 2.24 mm): marker 1 lies near the hinge axis. Over the
+    piece the hinge is at an angle not seen over those frames (marker 7 to marker 0:
+    200.3-203.4 mm, against 137.1-191.8 mm), so those tracks are set aside
+    (``NOVEL_POSE_ASIDE``, in steps 4c and 12). Without it the piece ends on marker 10 of
+    another segment, whose partner fits it."""
+    fig, _, ids = _right_then_off(monkeypatch, 33057, "NOVEL_POSE_ASIDE", False)
+    assert [1, 10] in ids and [1] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[0] == seg[1] != seg[10] and (seg == seg[1]).sum() == 2
+    assert seg[7] == seg[8] != seg[1]
+
+
 def test_an_unjudged_piece_moves_to_the_free_marker_whose_distance_ranges_it_keeps(
         monkeypatch):
     """Held-out figure 26623 (first run at stop 76): marker 15's last 23 frames (frames
