@@ -215,18 +215,24 @@ def _body_sds(vis, P, sd_of, f, kept, excl, body_sd, body_frames) -> tuple:
     return js, sd[js]
 
 
-def _off_body(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, body_frames) -> bool:
-    """Fragment ``f`` cannot be the marker of the fragments ``kept``: a track of P (not in
-    ``excl``) that moves as one body with them (sd <= ``body_sd`` to each it is seen with,
-    over >= ``body_frames`` frames) is not rigid to f (sd > ``rigid_sd``) or sits at another
-    distance from it (``_jump_ss`` of kept + [f] above that of kept by ``bound``)."""
+def _off_tracks(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound,
+                body_frames) -> np.ndarray:
+    """The tracks of P (not in ``excl``) that move as one body with the fragments ``kept``
+    (one marker; sd <= ``body_sd`` to each they are seen with, over >= ``body_frames``
+    frames) and find fragment ``f`` off it: not rigid to f (sd > ``rigid_sd``) or at
+    another distance from it (``_jump_ss`` of kept + [f] above that of kept by ``bound``)."""
     js, sd = _body_sds(vis, P, sd_of, f, kept, excl, body_sd, body_frames)
     if js.size == 0:
-        return False
-    if (sd > rigid_sd).any():
-        return True
+        return js
     ss = _jump_ss(X, vis, kept + [f], P[:, js])
-    return bool((ss(kept + [f]) - ss(kept) > bound).any())
+    return js[(sd > rigid_sd) | (ss(kept + [f]) - ss(kept) > bound)]
+
+
+def _off_body(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, body_frames) -> bool:
+    """Fragment ``f`` cannot be the marker of the fragments ``kept``: a track that moves as
+    one body with them finds it off (``_off_tracks``)."""
+    return bool(_off_tracks(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound,
+                            body_frames).size)
 
 
 def _unseen_pose(d, kept_frames, piece_frames, margin, pair_frames) -> bool:

@@ -159,8 +159,8 @@ from . import rules
 from .bodies import _sphere_pick
 from .continuity import _continuity_cost
 from .judges import (
-    _body_sds, _fits, _fits_on, _jump_ss, _misfit, _novel_pose, _off_body, _placed, _tells,
-    _unjudged_on
+    _body_sds, _fits, _fits_on, _jump_ss, _misfit, _novel_pose, _off_body, _off_tracks, _placed,
+    _tells, _unjudged_on
 )
 from .tracks import (
     _cross_alternatives, _fragment_sd, _paced, _pair_sd, _spans, _tracks
@@ -208,11 +208,11 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                     # tracks that find f off at a pose to a home judge that fits it never
                     # seen over its marker's other frames: across a joint (figure 33057)
                     fit = judges[miss <= bound]
-                    one, _ = _body_sds(vis, P, sd_of, f, kept, [a], one_body * s0,
-                                       voter_frames)
+                    off_ = _off_tracks(X, vis, P, sd_of, f, kept, [a], rigid * s0,
+                                       one_body * s0, bound, voter_frames)
                     aside = _novel_pose(vis, P, f, kept, fit,
                                         sorted((set(judges[miss > bound].tolist())
-                                                | set(one.tolist())) - set(fit.tolist())),
+                                                | set(off_.tolist())) - set(fit.tolist())),
                                         rules.NOVEL_POSE_SD * s0, voter_frames)
                     miss, judges = miss[~np.isin(judges, aside)], judges[~np.isin(judges, aside)]
                 # judges that find f where its marker is (an off-body piece can have some)
