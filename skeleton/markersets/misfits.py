@@ -214,7 +214,8 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                                         sorted((set(judges[miss > bound].tolist())
                                                 | set(off_.tolist())) - set(fit.tolist())),
                                         rules.NOVEL_POSE_SD * s0, voter_frames)
-                    miss, judges = miss[~np.isin(judges, aside)], judges[~np.isin(judges, aside)]
+                    stay = ~np.isin(judges, aside)
+                    miss, judges = miss[stay], judges[stay]
                 # judges that find f where its marker is (an off-body piece can have some)
                 at_home = set(judges[miss <= bound].tolist())
                 off = _off_body(X, vis, P, sd_of, f, kept, [a] + aside, rigid * s0,

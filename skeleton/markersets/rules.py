@@ -98,11 +98,11 @@ TELLING_JUDGES = True    # step 4c: a move needs a judge on the new marker that 
 #                          also find the piece on its own (figure 4083)
 HOME_MAJORITY_STAYS = True  # step 4c: an off-body piece most of whose judges at home fit it
 #                             (two at least) moves only where as many judges fit it (22706)
-NOVEL_POSE_ASIDE = True  # step 4c: at home, a track that finds a piece off is set aside where
-#                          it is at a pose to a judge that fits it not seen over the marker's
-#                          other frames (out of their distance range; figure 33057)
-NOVEL_POSE_SD = 3.0      # ... and in step 12's judging mates: not rigid to it over those
-#                          frames (distance sd above this x s0), and out by more than this
+NOVEL_POSE_ASIDE = True  # steps 4c (at home) and 12 (every marker's mates): a track that
+#                          finds a piece off is set aside where it is at a pose to one that
+#                          fits it never seen over the marker's other frames (33057)
+NOVEL_POSE_SD = 3.0      # ... the two not rigid there (distance sd above this x s0), the
+#                          piece's mean distance out of their range by more than this
 
 ORDER_SD_WEIGHT = 1.0  # step 3's order: the whole sd of the least rigid partner (5991)
 LOOSE_BY_CONTINUITY = True  # step 3's loose passes: order by max(distance, scaled miss)
