@@ -222,10 +222,12 @@ def _off_tracks(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound,
     frames) and find fragment ``f`` off it: not rigid to f (sd > ``rigid_sd``) or at
     another distance from it (``_jump_ss`` of kept + [f] above that of kept by ``bound``)."""
     js, sd = _body_sds(vis, P, sd_of, f, kept, excl, body_sd, body_frames)
-    if js.size == 0:
-        return js
-    ss = _jump_ss(X, vis, kept + [f], P[:, js])
-    return js[(sd > rigid_sd) | (ss(kept + [f]) - ss(kept) > bound)]
+    off = sd > rigid_sd
+    rest = js[~off]
+    if rest.size:                # the jump sums only where the sd leaves it open
+        ss = _jump_ss(X, vis, kept + [f], P[:, rest])
+        off[~off] = ss(kept + [f]) - ss(kept) > bound
+    return js[off]
 
 
 def _off_body(X, vis, P, sd_of, f, kept, excl, rigid_sd, body_sd, bound, body_frames) -> bool:

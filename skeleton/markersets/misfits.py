@@ -203,7 +203,7 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                 miss, judges = _misfit(X, vis, P, sd_of, f, kept, [a], rigid * s0, bound,
                                        voter_frames, with_judges=True,
                                        drift=drift if rules.HOME_DRIFT else None)
-                aside = []
+                aside, off_ = [], None
                 if rules.NOVEL_POSE_ASIDE and (miss <= bound).any():
                     # tracks that find f off at a pose to a home judge that fits it never
                     # seen over its marker's other frames: across a joint (figure 33057)
@@ -218,8 +218,11 @@ def _move_misfits(X, groups, min_frames, s0, rigid=3.0, jump_margin=10.8, voter_
                     miss, judges = miss[stay], judges[stay]
                 # judges that find f where its marker is (an off-body piece can have some)
                 at_home = set(judges[miss <= bound].tolist())
-                off = _off_body(X, vis, P, sd_of, f, kept, [a] + aside, rigid * s0,
-                                one_body * s0, bound, voter_frames)
+                if off_ is None:
+                    off = _off_body(X, vis, P, sd_of, f, kept, [a], rigid * s0,
+                                    one_body * s0, bound, voter_frames)
+                else:            # per-track results: those of off_ not set aside
+                    off = bool(set(off_.tolist()) - set(aside))
                 if (off and rules.SPLIT_BODY_STAYS and _fits(miss, bound)
                         and _body_holds(X, vis, P, sd_of, f, kept, [a], rigid * s0,
                                         one_body * s0, bound, voter_frames)):
