@@ -24,7 +24,8 @@ on and what it measured:
 - ``splits`` (step 7): two markers of a 2-marker segment left as three ids;
 - ``spheres`` (steps 8, 11 and 12b): the sphere each marker keeps about its joint in a
   neighbouring body's frame, its direction and its continuity, for exchanges and joins
-  (12b, after step 12: two pieces exchanged where the spheres decide, ``_sphere_check``);
+  (12b, after step 12: two pieces exchanged, or one moved, where the spheres decide,
+  ``_sphere_check``);
 - ``model`` (step 12): a piece off its marker's one-body mates (robust distance
   statistics) moves or is exchanged to the one marker it fits (``_model_check``);
 - ``tracks``, ``judges``, ``continuity``, ``bodies``: what the steps share (tracks and
@@ -212,7 +213,8 @@ def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
         seen = {_state(groups)}
         fixed = set()
         for _ in range(rules.MODEL_ROUNDS if rules.SPHERE_CHECK else 0):
-            # step 12b: an exchange the joint spheres decide, its pieces then kept by step 12
+            # step 12b: an exchange (or move) the joint spheres decide, its pieces then
+            # kept by step 12
             new = _sphere_check(X, groups, max_step, min_frames)
             if new is None:
                 break

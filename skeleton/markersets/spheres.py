@@ -222,6 +222,18 @@
    marker's sphere found the piece off and the fragment on: figure 30 (two bodies, where
    the other marker's sphere finds the piece 44-75 x off it, an opposing verdict) and 113
    (three, one at 5.9 x, above ``SPHERE_FIT_Z``).
+   Since stop 81 a piece so found off its marker's sphere also moves, with nothing coming
+   back, to a marker that shares no frame with it and whose sphere (all its fragments)
+   it lies on within ``SPHERE_FIT_Z``, judged the same way: two or more agreeing
+   verdicts, none opposing (``SPHERE_MOVES``; that marker may move as one body with the
+   piece's, which an exchange's may not). Held-out figure 34087 (first run at stop 79):
+   marker 18's first 13 frames (2-marker segment {18, 19}, marker 18 hidden until frame
+   24) sat on its partner 19; in the frame of the hinged child (three markers) marker
+   19's sphere without them (rms 1.42 x s0) has them 53.5 x its rms off, marker 18's
+   (1.29 x s0) 1.41 x on, and a two-track body's frame has them 1.11 x on marker 18's.
+   Step 8's common-centre fit had taken them in: about a hinge a marker keeps a circle,
+   and a sphere's centre slides along the axis to take in a few points off it (2.79
+   residual sds off as merged, 1.43 exchanged).
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
@@ -576,7 +588,10 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
     every body: where a's sphere without f fits, it agrees when f is off and h on it, and
     opposes when either is not; where b's sphere without h fits, it agrees when f is on it
     and h off, and opposes otherwise. Made where two or more bodies agree and none
-    opposes, the result overlap-free and paced; the piece furthest off first."""
+    opposes, the result overlap-free and paced; the piece furthest off first. With
+    ``SPHERE_MOVES`` the candidates include f alone moved to a marker b sharing no frame
+    with it (b may move as one body with a) whose sphere f lies on within
+    ``SPHERE_FIT_Z``, judged alike with no piece coming back (figure 34087)."""
     vis = ~np.isnan(X[..., 0])
     P = _tracks(X, groups)
     S, s0 = _pair_sd(P, min_frames)
@@ -607,8 +622,18 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
         return spheres[body, m, f]
 
     def z(body, f, s):
+        if f is None:                 # a move: no piece comes back
+            return np.nan
         y = points(body, f)
         return _sphere_z(y, s) if len(y) >= rules.SPHERE_POINTS else np.nan
+
+    free = {}
+
+    def free_of(b, f):
+        # marker b shares no frame with fragment f (f can move onto it)
+        if (b, f) not in free:
+            free[b, f] = not vis[:, groups[b]][vis[:, f]].any()
+        return free[b, f]
 
     found = {}
     for a, g in enumerate(groups):
@@ -626,7 +651,15 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
                     continue
                 lo, hi = span[f]
                 for b, gb in enumerate(groups):
-                    if b == a or one[a, b] or outside(body, b):
+                    if b == a or outside(body, b):
+                        continue
+                    if rules.SPHERE_MOVES and free_of(b, f):
+                        # f itself on b's sphere, b never seen with it: a move
+                        sb = sphere(body, b, None)
+                        if sb is not None and z(body, f, sb) <= rules.SPHERE_FIT_Z:
+                            found[a, f, b, None] = max(found.get((a, f, b, None), 0.0),
+                                                       z(body, f, s))
+                    if one[a, b]:
                         continue
                     for h in gb:
                         if (span[h][1] >= lo and span[h][0] <= hi
@@ -657,10 +690,10 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
                 break
         if oppose or agree < 2:
             continue
-        new_a = [x for x in groups[a] if x != f] + [h]
+        new_a = [x for x in groups[a] if x != f] + ([] if h is None else [h])
         new_b = [x for x in groups[b] if x != h] + [f]
-        if any((vis[:, h] & vis[:, x]).any() for x in new_a if x != h) or any(
-                (vis[:, f] & vis[:, x]).any() for x in new_b if x != f):
+        if (h is not None and any((vis[:, h] & vis[:, x]).any() for x in new_a if x != h)
+                ) or any((vis[:, f] & vis[:, x]).any() for x in new_b if x != f):
             continue
         if not (_paced(X, span, new_a, max_step) and _paced(X, span, new_b, max_step)):
             continue

@@ -2187,6 +2187,26 @@ def test_a_judge_at_a_pose_never_seen_is_set_aside(monkeypatch):
     assert seg[7] == seg[8] != seg[1]
 
 
+def test_a_piece_off_its_markers_sphere_moves_to_the_marker_whose_sphere_it_lies_on(
+        monkeypatch):
+    """Held-out figure 34087 (first run at stop 79): the linkage put marker 18's first 13
+    frames (frames 0-12, 2-marker segment {18, 19}, marker 18 hidden until frame 24) on
+    its partner 19. One judge finds them 1.03 x step 4c's bound off at home, none judges
+    them on marker 18, and the continuity cost keeps them (1.66 where they are, 1.91 on
+    18). In the frame of the hinged child (three markers), marker 19's joint sphere
+    without them (r 50.0 mm, rms 1.42 x s0) has them 53.5 x its rms off, and marker 18's
+    (r 158.0 mm, rms 1.29 x s0) 1.41 x on; in a two-track body's frame marker 18's sphere
+    (rms 1.50 x s0) has them 1.11 x on. Step 8's common-centre fit took them in (2.79
+    residual sds off as merged, 1.43 exchanged: under its 2:1). Step 12b moves them
+    (``SPHERE_MOVES``)."""
+    fig, _, ids = _right_then_off(monkeypatch, 34087, "SPHERE_MOVES", False)
+    assert [18, 19] in ids and [18] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[18] == seg[19] and (seg == seg[18]).sum() == 2
+    assert fig.parents[seg[54]] == seg[18] and (seg == seg[54]).sum() == 3
+    assert fig.joint_types[seg[54]] == "hinge"
+
+
 def test_an_unjudged_piece_moves_to_the_free_marker_whose_distance_ranges_it_keeps(
         monkeypatch):
     """Held-out figure 26623 (first run at stop 76): marker 15's last 23 frames (frames
