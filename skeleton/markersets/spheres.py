@@ -226,7 +226,12 @@
    back, to a marker that shares no frame with it and whose sphere (all its fragments)
    it lies on within ``SPHERE_FIT_Z``, judged the same way: two or more agreeing
    verdicts, none opposing (``SPHERE_MOVES``; that marker may move as one body with the
-   piece's, which an exchange's may not). Held-out figure 34087 (first run at stop 79):
+   piece's, which an exchange's may not), and every other marker free over the piece's
+   frames finds it >= ``SPHERE_MISFIT_Z`` off its sphere on some body (without that,
+   figure 12669 with ``MODEL_STRONGER`` and ``NOVEL_POSE_ASIDE`` off sent marker 7's
+   piece to marker 11, the first of two free markers whose spheres it lay on: marker 7
+   the other, and marker 39, free too, found it off on no body).
+   Held-out figure 34087 (first run at stop 79):
    marker 18's first 13 frames (2-marker segment {18, 19}, marker 18 hidden until frame
    24) sat on its partner 19; in the frame of the hinged child (three markers) marker
    19's sphere without them (rms 1.42 x s0) has them 53.5 x its rms off, marker 18's
@@ -591,7 +596,9 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
     opposes, the result overlap-free and paced; the piece furthest off first. With
     ``SPHERE_MOVES`` the candidates include f alone moved to a marker b sharing no frame
     with it (b may move as one body with a) whose sphere f lies on within
-    ``SPHERE_FIT_Z``, judged alike with no piece coming back (figure 34087)."""
+    ``SPHERE_FIT_Z``, judged alike with no piece coming back, where every other marker
+    sharing no frame with f has some body finding f >= ``SPHERE_MISFIT_Z`` off its
+    sphere (figure 34087)."""
     vis = ~np.isnan(X[..., 0])
     P = _tracks(X, groups)
     S, s0 = _pair_sd(P, min_frames)
@@ -634,6 +641,15 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
         if (b, f) not in free:
             free[b, f] = not vis[:, groups[b]][vis[:, f]].any()
         return free[b, f]
+
+    def off_some(a, f, c):
+        # some body holding neither a nor c finds fragment f off marker c's sphere
+        for body in frames:
+            if not (outside(body, a) or outside(body, c)):
+                sc = sphere(body, c, None)
+                if sc is not None and z(body, f, sc) >= rules.SPHERE_MISFIT_Z:
+                    return True
+        return False
 
     found = {}
     for a, g in enumerate(groups):
@@ -690,6 +706,9 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
                 break
         if oppose or agree < 2:
             continue
+        if h is None and not all(off_some(a, f, c) for c in range(len(groups))
+                                 if c not in (a, b) and free_of(c, f)):
+            continue        # a move: every other marker f could go to is off somewhere
         new_a = [x for x in groups[a] if x != f] + ([] if h is None else [h])
         new_b = [x for x in groups[b] if x != h] + [f]
         if (h is not None and any((vis[:, h] & vis[:, x]).any() for x in new_a if x != h)

@@ -961,8 +961,11 @@ def test_a_two_marker_body_and_its_joint_judge_an_exchange_by_spheres(monkeypatc
     joint to the grandparent (three markers) as the third point (``_pair_frames``) the
     piece sits 32 residual sds off as merged and 1.3 exchanged, the fit at 1.42 x s0 (the
     markers are 253 and 361 mm from their joint); step 8 now makes that exchange last
-    (``PAIR_FRAMES``); without it the two markers stay mixed."""
-    fig, _, ids = _right_then_off(monkeypatch, 12020, "PAIR_FRAMES", False)
+    (``PAIR_FRAMES``); without it the two markers stay mixed. Since stop 81 step 12b's
+    ``SPHERE_MOVES`` (a piece off its marker's joint sphere moves to the one marker whose
+    sphere it lies on) repairs the failure too; it is set up with that off."""
+    fig, _, ids = _right_then_off(monkeypatch, 12020, "PAIR_FRAMES", False,
+                                  failure_also={"SPHERE_MOVES": False})
     assert [20, 21] in ids
     assert fig.marker_segment[20] == fig.marker_segment[21]
 
@@ -1462,9 +1465,12 @@ def test_cross_exchange_never_makes_a_piece_a_misfit(monkeypatch):
     step 4c's misfit, which no step then moved back. Step 4b now makes no exchange that
     turns a piece judged to fit at home into a misfit (``NO_NEW_MISFITS``). Since stop 80
     ``NOVEL_POSE_ASIDE`` (a judge at a pose not seen before is set aside) prevents the
-    failure too; it is set up with that off."""
+    failure too, and since stop 81 step 12b's ``SPHERE_MOVES`` (a piece off its marker's
+    joint sphere moves to the one marker whose sphere it lies on) repairs it; it is set
+    up with both off."""
     _, _, ids = _right_then_off(monkeypatch, 4430, "NO_NEW_MISFITS", False,
-                                failure_also={"NOVEL_POSE_ASIDE": False})
+                                failure_also={"NOVEL_POSE_ASIDE": False,
+                                              "SPHERE_MOVES": False})
     assert [9, 12] in ids
 
 
@@ -1515,8 +1521,11 @@ def test_an_off_body_piece_goes_to_the_free_marker_that_continues_it(monkeypatch
     over its frames; on 19 a track finds it off, on 0 and 1 none does, so neither
     ``ONLY_FREE_MARKER`` nor ``ONE_UNJUDGED_FREE`` moved it. It raises marker 0's
     continuity cost by 0.69 and marker 1's by 4.46 (taking it off marker 6 lowers that by
-    3.66), and now goes to marker 0 (``CONTINUITY_OFF_BODY``)."""
-    _, _, ids = _right_then_off(monkeypatch, 2738, "CONTINUITY_OFF_BODY", False)
+    3.66), and now goes to marker 0 (``CONTINUITY_OFF_BODY``). Since stop 81 step 12b's
+    ``SPHERE_MOVES`` (a piece off its marker's joint sphere moves to the one marker whose
+    sphere it lies on) repairs the failure too; it is set up with that off."""
+    _, _, ids = _right_then_off(monkeypatch, 2738, "CONTINUITY_OFF_BODY", False,
+                                failure_also={"SPHERE_MOVES": False})
     assert [0, 6] in ids
 
 
