@@ -180,3 +180,5 @@ SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres dec
 #                         step 12 again (``spheres._sphere_check``; figure 12175)
 SPHERE_MOVES = True     # ... and a piece moved onto the one marker never seen with it
 #                         whose sphere it lies on, where they decide alike (figure 34087)
+LENDERS_ONCE = True     # ... a two-track body's frames with different lenders agree
+#                         once, not once per lender (figure 37858)

@@ -231,6 +231,15 @@
    figure 12669 with ``MODEL_STRONGER`` and ``NOVEL_POSE_ASIDE`` off sent marker 7's
    piece to marker 11, the first of two free markers whose spheres it lay on: marker 7
    the other, and marker 39, free too, found it off on no body).
+   Verdicts are counted once per body and marker, and a two-track body's frames with
+   different lenders (``_pair_frames(every_lender=True)``) as one body (``LENDERS_ONCE``,
+   stop 81): held-out figure 37858 (first run at stop 81) had the first pieces of markers
+   18 and 28 (segments 6 and 9) exchanged on two such frames of 2-marker segment 7, the
+   parent of 9, with the joints lent by its child 11 and by sibling 1: marker 28's sphere
+   without its piece (frames 80-399) fitted at 0.95 and 1.04 x s0, but about a centre
+   55 mm off the joint with radius 279 mm against the true 334 (a cap of a sphere), so
+   its own piece (frames 0-53, a pose the cap misses) sat 15.8 and 12.1 x off it and
+   marker 18's 2.9 and 2.8 x on it; no other body judged.
    Held-out figure 34087 (first run at stop 79):
    marker 18's first 13 frames (2-marker segment {18, 19}, marker 18 hidden until frame
    24) sat on its partner 19; in the frame of the hinged child (three markers) marker
@@ -598,7 +607,8 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
     with it (b may move as one body with a) whose sphere f lies on within
     ``SPHERE_FIT_Z``, judged alike with no piece coming back, where every other marker
     sharing no frame with f has some body finding f >= ``SPHERE_MISFIT_Z`` off its
-    sphere (figure 34087)."""
+    sphere (figure 34087). Agreement is counted per body and marker, a two-track body's
+    frames with different lenders as one body (``LENDERS_ONCE``, figure 37858)."""
     vis = ~np.isnan(X[..., 0])
     P = _tracks(X, groups)
     S, s0 = _pair_sd(P, min_frames)
@@ -684,10 +694,12 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
                                                     z(body, f, s))
     best = None
     for (a, f, b, h), score in sorted(found.items(), key=lambda c: -c[1]):
-        agree, oppose = 0, False
+        agree, oppose = set(), False
         for body in frames:
             if outside(body, a) or outside(body, b):
                 continue
+            # a two-track body's frames with different lenders are one body's verdicts
+            core = body[:2] if rules.LENDERS_ONCE and body in lent else body
             for m, own, new in ((a, f, h), (b, h, f)):
                 s = sphere(body, m, own)
                 if s is None:
@@ -701,10 +713,10 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
                 if not ok:
                     oppose = True
                     break
-                agree += 1
+                agree.add((core, m))
             if oppose:
                 break
-        if oppose or agree < 2:
+        if oppose or len(agree) < 2:
             continue
         if h is None and not all(off_some(a, f, c) for c in range(len(groups))
                                  if c not in (a, b) and free_of(c, f)):
