@@ -2216,6 +2216,21 @@ def test_a_piece_off_its_markers_sphere_moves_to_the_marker_whose_sphere_it_lies
     assert fig.joint_types[seg[54]] == "hinge"
 
 
+def test_a_two_track_bodys_frames_with_different_lenders_agree_once(monkeypatch):
+    """Held-out figure 37858 (first run at stop 81): step 12b exchanged the first pieces of
+    markers 18 and 28 (segments 6 and 9; frames 0-46 and 0-53), judged in two frames of
+    the 2-marker segment 7 (parent of 9), one with the joint lent by its child 11, one by
+    its sibling 1. Marker 28's sphere without its piece fitted at 0.95 and 1.04 x s0 but
+    on a cap (radius 279 mm against the true 334), so its own piece, at a pose the cap
+    misses, sat 15.8 and 12.1 x the rms off it and marker 18's 2.9 and 2.8 x on it. Those
+    two verdicts are one body's now (``LENDERS_ONCE``); nothing else judged."""
+    fig, _, ids = _right_then_off(monkeypatch, 37858, "LENDERS_ONCE", False)
+    assert [18, 28] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[18] != seg[28] and fig.parents[seg[28]] == seg[21] == seg[22]
+    assert (seg == seg[21]).sum() == 2
+
+
 def test_an_unjudged_piece_moves_to_the_free_marker_whose_distance_ranges_it_keeps(
         monkeypatch):
     """Held-out figure 26623 (first run at stop 76): marker 15's last 23 frames (frames
