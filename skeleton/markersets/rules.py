@@ -181,5 +181,8 @@ SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres dec
 SPHERE_MOVES = False    # ... and a piece moved onto the one marker never seen with it
 #                         whose sphere it lies on, where they decide alike (figure 34087);
 #                         off: it made held-out 39328 wrong (stop 81)
+MOVES_KEEP_MODEL = True  # ... no move where step 12's rigid model fits the piece at home
+#                          or finds it off on the new marker (39328: 0.90 and 0.84 at
+#                          home, 89.6 on the new marker)
 LENDERS_ONCE = True     # ... a two-track body's frames with different lenders agree
 #                         once, not once per lender (figure 37858)

@@ -263,6 +263,7 @@ from .bodies import (
 )
 from .continuity import _continuity_cost
 from .judges import _jumps
+from .model import _Model, _fits, _off
 from .tracks import (
     _cross_alternatives, _exchange, _fragment_sd, _paced, _pair_sd, _rigid_to_all, _spans,
     _tracks
@@ -693,7 +694,7 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
                                 and z(body, h, s) <= rules.SPHERE_FIT_Z):
                             found[a, f, b, h] = max(found.get((a, f, b, h), 0.0),
                                                     z(body, f, s))
-    best = None
+    best, model = None, None
     for (a, f, b, h), score in sorted(found.items(), key=lambda c: -c[1]):
         agree, oppose = set(), False
         for body in frames:
@@ -722,6 +723,12 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
         if h is None and not all(off_some(a, f, c) for c in range(len(groups))
                                  if c not in (a, b) and free_of(c, f)):
             continue        # a move: every other marker f could go to is off somewhere
+        if h is None and rules.MOVES_KEEP_MODEL:
+            # nor against step 12's rigid model: it fits f at home or finds it off on b
+            if model is None:
+                model = _Model(X, vis, groups)
+            if _fits(model.judge(f, a)) or _off(model.judge(f, b)):
+                continue
         new_a = [x for x in groups[a] if x != f] + ([] if h is None else [h])
         new_b = [x for x in groups[b] if x != h] + [f]
         if (h is not None and any((vis[:, h] & vis[:, x]).any() for x in new_a if x != h)
