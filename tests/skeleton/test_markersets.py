@@ -2217,6 +2217,22 @@ def test_a_piece_off_its_markers_sphere_moves_to_the_marker_whose_sphere_it_lies
     assert fig.joint_types[seg[54]] == "hinge"
 
 
+def test_a_sphere_move_is_not_made_against_the_rigid_model(monkeypatch):
+    """Held-out figure 39328 (first run at stop 81, wrong with ``SPHERE_MOVES`` on): step
+    12b moved marker 8's first piece (3-marker segment 3) to marker 10 (3-marker segment
+    4, never seen with it). The verdicts all came from frames of one 2-marker segment
+    (markers 5 and 6) with two lenders: marker 8's sphere without the piece had it 6.7
+    and 27.7 x its rms off, marker 10's 2.3 x on. Marker 8's two mates fit the piece at
+    home (0.90 and 0.84 x their sd); on marker 10 its two mates find it 89.6 x off. A
+    move is not made against step 12's rigid model (``MOVES_KEEP_MODEL``)."""
+    fig, _, ids = _right_then_off(monkeypatch, 39328, "MOVES_KEEP_MODEL", False,
+                                  SPHERE_MOVES=True)
+    assert [8, 10] in ids and [8] in ids
+    seg = fig.marker_segment
+    assert seg[8] != seg[10] and (seg == seg[8]).sum() == (seg == seg[10]).sum() == 3
+    assert (seg == seg[5]).sum() == 2
+
+
 def test_a_two_track_bodys_frames_with_different_lenders_agree_once(monkeypatch):
     """Held-out figure 37858 (first run at stop 81): step 12b exchanged the first pieces of
     markers 18 and 28 (segments 6 and 9; frames 0-46 and 0-53), judged in two frames of
