@@ -54,6 +54,7 @@ from .joins import _join_by_continuity, _join_by_partners, _split_joins
 from .linkage import _merge_pass
 from .misfits import _move_misfits
 from .model import _model_check
+from .neighbour import _neighbour_continuity
 from .spheres import _join_by_spheres, _sphere_check, _sphere_exchanges
 from .splits import _two_of_three
 from .swaps import _repair_swaps
@@ -229,6 +230,16 @@ def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
             if rules.MODEL_JOINS and res.n_markers > n_min:
                 # a piece moved off a marker can leave that marker's own piece free to join
                 res = merge_and_join(res, True)
+    if rules.NEIGHBOUR_CONTINUITY:
+        # step 12c: a piece moved to its one-body partner by continuity in a neighbour's frame
+        groups, moved = [list(g) for g in res.groups], False
+        for _ in range(rules.MODEL_ROUNDS):
+            new = _neighbour_continuity(X, groups, max_step, min_frames)
+            if new is None:
+                break
+            groups, moved = new, True
+        if moved:
+            res = _with_groups(X, res, groups)
     return res
 
 

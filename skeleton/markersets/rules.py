@@ -186,3 +186,8 @@ MOVES_KEEP_MODEL = True  # ... no move where step 12's rigid model fits the piec
 #                          home, 89.6 on the new marker)
 LENDERS_ONCE = True     # ... a two-track body's frames with different lenders agree
 #                         once, not once per lender (figure 37858)
+NEIGHBOUR_CONTINUITY = True  # step 12c: a piece moves to its one-body partner never seen
+#                              with it where motion continuity in the frame of a body across
+#                              one joint decides (``neighbour``; 26684, 39284, 39416)
+NEIGHBOUR_CONTINUITY_MARGIN = 1.0  # ... the cost falling by at least this in every such body
+NEIGHBOUR_FIT_RMS = 2.0  # ... a body across one joint: both markers' spheres within this x s0

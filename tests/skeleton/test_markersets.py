@@ -2233,6 +2233,27 @@ def test_a_sphere_move_is_not_made_against_the_rigid_model(monkeypatch):
     assert (seg == seg[5]).sum() == 2
 
 
+@pytest.mark.parametrize("k, piece_of, on, n_seg", [(26684, 10, 11, 2), (39284, 33, 34, 2),
+                                                   (39416, 47, 46, 3)])
+def test_an_end_piece_moves_by_continuity_in_a_neighbours_frame(monkeypatch, k, piece_of, on,
+                                                                 n_seg):
+    """Held-out figures 26684 (stop 76), 39284 and 39416 (stop 81): a leaf segment (two
+    markers; three on 39416) whose markers are all hidden near the end, one coming back;
+    the linkage put that end piece (marker ``piece_of``) on a partner (``on``). No mate is
+    seen with the piece and the two markers are about equally far from the joint (26684:
+    240.8 and 242.4 mm), so nothing rigid tells them; world continuity prefers the right
+    marker by less than any margin (the cost falls by 0.54, 0.65, 1.77). In the parent's
+    frame (a two-track frame on 26684, three markers on the others) a marker only turns
+    about the joint, and the cost falls by 1.43, 1.34 and 2.23 (on 26684 in the true
+    parent frame the junction misses 9.5 mm, against 28.8 mm on marker 11): step 12c
+    moves the piece (``NEIGHBOUR_CONTINUITY``)."""
+    fig, _, ids = _right_then_off(monkeypatch, k, "NEIGHBOUR_CONTINUITY", False)
+    assert sorted([piece_of, on]) in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[piece_of] == seg[on] and (seg == seg[on]).sum() == n_seg
+    assert not (np.asarray(fig.parents) == seg[on]).any()          # a leaf
+
+
 def test_a_two_track_bodys_frames_with_different_lenders_agree_once(monkeypatch):
     """Held-out figure 37858 (first run at stop 81): step 12b exchanged the first pieces of
     markers 18 and 28 (segments 6 and 9; frames 0-46 and 0-53), judged in two frames of

@@ -1,0 +1,137 @@
+"""Step 12c of the marker-set merge: motion continuity in a neighbouring body's frame.
+
+Two markers of one segment, both hidden, come back as one piece: which of the two it is,
+nothing rigid can tell where the segment shows one marker at a time (a 2-marker segment):
+no mate is seen with the piece, and where the two are about equally far from their joint
+their spheres about it are alike. What is left is motion continuity, and in the world a
+marker's path carries the motion of every segment above it, so a junction's miss across a
+gap of 20-40 frames is of the order of the markers' spacing (steps 3, 7b and 8 judge it
+there, ``continuity._continuity_cost``). In the frame of the body the segment hangs from,
+a marker only turns about the joint, and its path is much smoother.
+
+``_neighbour_continuity`` (``NEIGHBOUR_CONTINUITY``): a piece ``f`` of marker ``b`` moves
+to marker ``a`` that moves as one body with ``b`` and shares no frame with ``f``, where
+
+- in the world, the continuity cost (step 7b's, both markers summed) falls by the move;
+- in the frame of every neighbouring body (step 12b's bodies, ``_judging_frames``, holding
+  neither marker and where both keep a joint sphere without ``f`` within the body's fit
+  gate: the body is across one joint from them) that sees ``f`` for ``SPHERE_POINTS``
+  frames, the same cost, computed on the markers' positions in that frame, falls by at
+  least ``NEIGHBOUR_CONTINUITY_MARGIN``; at least one such body judges, none finds less;
+- step 12's rigid model neither fits ``f`` on ``b`` nor finds it off on ``a``; the move is
+  paced (step 3's speed gate).
+
+The largest fall moves first, one move a round, at most ``MODEL_ROUNDS`` rounds.
+Figures (all wrong on stop 81's code; a leaf segment whose markers are all hidden near
+the end, one coming back, that end piece on a partner): 26684 (2-marker segment, markers
+10 and 11, the parent two markers, judged in its two-track frame), 39284 (markers 33 and
+34), 39416 (3-marker segment, markers 46 and 47). The margin and the screens are in
+docs/figures-skeleton.md.
+
+Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import rules
+from .bodies import _one_body_frames, _points_in, _sphere_fit
+from .continuity import _continuity_cost
+from .model import _Model, _fits, _off
+from .spheres import _judging_frames
+from .tracks import _paced, _pair_sd, _spans, _tracks
+
+
+def _candidates(X, groups, min_frames=10, body_sd=1.5, body_frames=100, fit_rms=None):
+    """Each move step 12c weighs: (a, f, b, world fall, [(body, fall in its frame, the
+    larger of the two spheres' rms / s0)]), the falls negative where the cost falls
+    (``_neighbour_continuity``); the bodies those across one joint from both markers that
+    see ``f``: their spheres fit within the body's gate (``_judging_frames``' with
+    ``fit_rms``, ``NEIGHBOUR_FIT_RMS`` x s0 by default)."""
+    fit_rms = rules.NEIGHBOUR_FIT_RMS if fit_rms is None else fit_rms
+    vis = ~np.isnan(X[..., 0])
+    P = _tracks(X, groups)
+    S, s0 = _pair_sd(P, min_frames)
+    if not s0 > 0:
+        return []
+    _, one, full = _one_body_frames(P, S, s0, body_sd, body_frames)
+    if not full:
+        return []
+    frames, gate, lent = _judging_frames(P, one, full, s0, fit_rms)
+    points = _points_in(frames, X)
+    world = _continuity_cost(X, vis)
+    costs = {}
+
+    def frame_cost(body):
+        # the continuity cost in the body's frame (every column moved into it)
+        if body not in costs:
+            fr, R, t = frames[body]
+            Y = np.full_like(X, np.nan)
+            Y[fr] = np.einsum("tij,tfj->tfi", R, X[fr]) + t[:, None]
+            costs[body] = (_continuity_cost(Y, ~np.isnan(Y[..., 0])), ~np.isnan(Y[..., 0]))
+        return costs[body]
+
+    def sphere_rms(body, m, f):
+        # marker m's joint sphere in body without f: its rms / s0 (inf: too few points)
+        rest = [points(body, h) for h in groups[m] if h != f]
+        if sum(map(len, rest)) < 50:
+            return np.inf
+        return _sphere_fit(np.concatenate(rest))[2] / s0
+
+    def fall(cost, a, b, f):
+        ga, gb = list(groups[a]), list(groups[b])
+        nb = [h for h in gb if h != f]
+        return cost(ga + [f]) + cost(nb) - cost(ga) - cost(gb)
+
+    out = []
+    for b, gb in enumerate(groups):
+        if len(gb) < 2:
+            continue
+        for a in np.flatnonzero(one[b]):
+            a = int(a)
+            for f in gb:
+                if vis[:, groups[a]][vis[:, f]].any():
+                    continue
+                judged = []
+                for body in frames:
+                    if any(m in body or m in lent.get(body, ()) for m in (a, b)):
+                        continue
+                    if len(points(body, f)) < rules.SPHERE_POINTS:
+                        continue
+                    rms = max(sphere_rms(body, a, f), sphere_rms(body, b, f))
+                    if not rms <= max(gate[body], fit_rms):
+                        continue
+                    cost, seen = frame_cost(body)
+                    if not all(seen[:, h].sum() >= 2 for h in list(groups[a]) + list(gb)):
+                        continue
+                    judged.append((body, fall(cost, a, b, f), rms))
+                out.append((a, f, b, fall(world, a, b, f), judged))
+    return out
+
+
+def _neighbour_continuity(X, groups, max_step=np.inf, min_frames=10) -> list | None:
+    """Step 12c (module docstring): groups after one move, or None."""
+    vis = ~np.isnan(X[..., 0])
+    span = _spans(vis, groups)
+    model = None
+    found = []
+    for a, f, b, w, judged in _candidates(X, groups, min_frames):
+        if not judged or not w < 0:
+            continue
+        worst = max(d for _, d, _ in judged)
+        if not worst <= -rules.NEIGHBOUR_CONTINUITY_MARGIN:
+            continue
+        found.append((min(d for _, d, _ in judged), a, f, b))
+    for _, a, f, b in sorted(found):
+        if model is None:
+            model = _Model(X, vis, groups)
+        if _fits(model.judge(f, b)) or _off(model.judge(f, a)):
+            continue
+        new_a = list(groups[a]) + [f]
+        new_b = [h for h in groups[b] if h != f]
+        if not (_paced(X, span, new_a, max_step) and _paced(X, span, new_b, max_step)):
+            continue
+        out = [list(g) for g in groups]
+        out[a], out[b] = new_a, new_b
+        return out
+    return None
