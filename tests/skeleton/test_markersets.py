@@ -646,10 +646,12 @@ def test_two_markers_hidden_together_are_told_apart_by_their_joint_spheres(monke
     # without step 8 the two markers stay mixed (the failure guarded against; since stop 36
     # the speed gate keeps 221's piece off the other marker too, so it is off here, and
     # since stop 51 the loose passes' order, so it is set as before, and since stop 53
-    # step 4c's move to the one open marker, ONE_OPEN, puts 221's piece back, so it is off)
+    # step 4c's move to the one open marker, ONE_OPEN, puts 221's piece back, so it is off;
+    # since stop 82 step 12c's continuity in a neighbour's frame moves either piece back too)
     import skeleton.markersets as ms
     monkeypatch.setattr(ms.rules, "LOOSE_BY_CONTINUITY", False)
     monkeypatch.setattr(ms.rules, "ONE_OPEN", False)
+    monkeypatch.setattr(ms.rules, "NEIGHBOUR_CONTINUITY", False)
     assert _mixed_with(monkeypatch, X, owner, "_sphere_exchanges", merge_kw=NO_GATE,
                        max_rounds=0) == [pair]
 
@@ -963,9 +965,11 @@ def test_a_two_marker_body_and_its_joint_judge_an_exchange_by_spheres(monkeypatc
     markers are 253 and 361 mm from their joint); step 8 now makes that exchange last
     (``PAIR_FRAMES``); without it the two markers stay mixed. Since stop 81 step 12b's
     ``SPHERE_MOVES`` (a piece off its marker's joint sphere moves to the one marker whose
-    sphere it lies on) repairs the failure too; it is set up with that off."""
+    sphere it lies on) repairs the failure too, and since stop 82 step 12c's continuity in
+    a neighbour's frame (``NEIGHBOUR_CONTINUITY``); it is set up with both off."""
     fig, _, ids = _right_then_off(monkeypatch, 12020, "PAIR_FRAMES", False,
-                                  failure_also={"SPHERE_MOVES": False})
+                                  failure_also={"SPHERE_MOVES": False,
+                                                "NEIGHBOUR_CONTINUITY": False})
     assert [20, 21] in ids
     assert fig.marker_segment[20] == fig.marker_segment[21]
 
@@ -1337,8 +1341,11 @@ def test_a_piece_seen_while_its_partner_is_hidden_is_judged_by_continuity(monkey
     frames; 6.3 and 16.4 mm on its own marker). Step 8 now makes the exchange that lowers
     the continuity cost by >= 2 (4 until stop 46; ``CONTINUITY_EXCHANGES``). (Since stop 60
     step 8's ``PAIR_FRAMES``, which comes after it, also puts 611 right; they are shown with
-    that rule off.)"""
+    that rule off. Since stop 82 step 12c's continuity in a neighbour's frame,
+    ``NEIGHBOUR_CONTINUITY``, repairs 3293's, 1210's and 1306's failure too: it is off in
+    the failure setup.)"""
     _, _, ids = _right_then_off(monkeypatch, k, "CONTINUITY_EXCHANGES", False,
+                                failure_also={"NEIGHBOUR_CONTINUITY": False},
                                 PAIR_FRAMES=False)
     assert [a, b] in ids
 
@@ -1508,9 +1515,10 @@ def test_a_one_body_exchange_lowering_continuity_by_two_is_made(monkeypatch, k, 
     cost by 2.43 (1304) and 3.52 (4385), under the margin of 4 it had until stop 46. On
     the figures screened at stop 46 no alternative that reached the continuity test and
     lowered the cost by 2 or more was wrong; the margin is 2 now
-    (``CONTINUITY_EXCHANGE_MARGIN``)."""
+    (``CONTINUITY_EXCHANGE_MARGIN``). Since stop 82 step 12c (``NEIGHBOUR_CONTINUITY``)
+    repairs 1304's failure too: it is off in the failure setup."""
     _, _, ids = _right_then_off(monkeypatch, k, "CONTINUITY_EXCHANGE_MARGIN", 4.0,
-                                failure_also=NO_STEP12)
+                                failure_also={**NO_STEP12, "NEIGHBOUR_CONTINUITY": False})
     assert [a, b] in ids
 
 
@@ -2018,9 +2026,11 @@ def test_model_check_moves_an_off_piece_where_half_its_mates_fit(monkeypatch):
     x s0) 3.7 and 5.1: a median of 2.5, over ``MODEL_FIT_Z``. ``MODEL_HALF_FITS`` moves an
     off piece where half its mates, two at least, fit it; without it the piece stays.
     (Since stop 70 step 8's ``PAIR_OUTWEIGHS_JUMPS`` keeps the piece off marker 15 too:
-    off in the failure case.)"""
+    off in the failure case; since stop 82 step 12c, ``NEIGHBOUR_CONTINUITY``, moves the
+    piece to marker 17 by continuity in a neighbour's frame, so it is off too.)"""
     fig, _, ids = _right_then_off(monkeypatch, 18074, "MODEL_HALF_FITS", False,
-                                  failure_also={"PAIR_OUTWEIGHS_JUMPS": False})
+                                  failure_also={"PAIR_OUTWEIGHS_JUMPS": False,
+                                                "NEIGHBOUR_CONTINUITY": False})
     assert [15, 17] in ids and [17] in ids
     seg = fig.marker_segment
     assert seg[15] == seg[17]
