@@ -14,7 +14,8 @@ built with a smaller ``min_marker_spacing_m`` (random_tree takes up to 400 draws
 with 60, figure 59 kept two markers 7.8 mm apart). Merge time: the
 sum over the figures, and its ratio to the merge without the repair (``repair_swaps=False``:
 steps 1-3 of skeleton/markersets/ only), and with to without step 12 (``rules.MODEL_CHECK``
-False), and to stop 80's rules (without stop 81's ``SPHERE_MOVES`` and ``LENDERS_ONCE``).
+False), and to stop 81's rules (``SPHERE_MOVES`` off, as it was then, and without stop
+82's step 12c, ``NEIGHBOUR_CONTINUITY``).
 """
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ from tests.skeleton._figures import fragment, marker_spacing  # noqa: E402
 
 # name: (merge_fragments keywords, skeleton.markersets.rules constants set for it)
 VARIANTS = {"repair": ({}, {}), "no step 12": ({}, {"MODEL_CHECK": False}),
-            "stop 80 rules": ({}, {"SPHERE_MOVES": False, "LENDERS_ONCE": False}),
+            "stop 81 rules": ({}, {"SPHERE_MOVES": False, "NEIGHBOUR_CONTINUITY": False}),
             "no repair": ({"repair_swaps": False}, {})}
 
 
@@ -85,8 +86,8 @@ def main(first=0, last=80, T=400):
     print(f"merge time: repair {t['repair']:.1f} s, no repair {t['no repair']:.1f} s, "
           f"ratio {t['repair'] / t['no repair']:.2f}; without step 12 (MODEL_CHECK) "
           f"{t['no step 12']:.1f} s, ratio with it {t['repair'] / t['no step 12']:.2f}; "
-          f"with stop 80's rules (SPHERE_MOVES, LENDERS_ONCE off) "
-          f"{t['stop 80 rules']:.1f} s, ratio {t['repair'] / t['stop 80 rules']:.2f}; "
+          f"with stop 81's rules (SPHERE_MOVES, NEIGHBOUR_CONTINUITY off) "
+          f"{t['stop 81 rules']:.1f} s, ratio {t['repair'] / t['stop 81 rules']:.2f}; "
           f"largest figure "
           f"({max(r['F'] for r in rows)} fragments) "
           f"{max(rows, key=lambda r: r['F'])['repair']['t']:.2f} s")

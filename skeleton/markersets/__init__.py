@@ -7,7 +7,8 @@ NaN outside its life. Following the thesis (000, section 3.3, after Kirk, O'Brie
 2005), steps 1-3 drop too-short fragments, measure pose-aligned distances between fragments
 that never share a frame and merge them by constrained single linkage; steps 4-11 repair
 what one minimum distance per gap decides wrong, and step 12 checks every piece once more
-against the rigid model (its marker's one-body mates), step 12b against the joint spheres.
+against the rigid model (its marker's one-body mates), step 12b against the joint spheres,
+and step 12c by motion continuity in a neighbouring body's frame.
 One module per step; each module's docstring gives its rule, the figures it was designed
 on and what it measured:
 
@@ -28,6 +29,8 @@ on and what it measured:
   ``_sphere_check``);
 - ``model`` (step 12): a piece off its marker's one-body mates (robust distance
   statistics) moves or is exchanged to the one marker it fits (``_model_check``);
+- ``neighbour`` (step 12c): a piece moves to its one-body partner where motion continuity
+  in the frame of a body across one joint decides (``_neighbour_continuity``);
 - ``tracks``, ``judges``, ``continuity``, ``bodies``: what the steps share (tracks and
   their distance sds, the jump and misfit judges, run ends and junction misses, body
   frames and joint spheres); ``rules``: every rule's switch and threshold, one place
@@ -85,7 +88,7 @@ def merge_fragments(trajectories, min_frames: int = 10, max_distance_m: float = 
     ``loose_distance_m``, while there are more markers than the thesis' bound (the most
     fragments seen in one frame): fast motion across a gap in which every same-segment
     partner was hidden too leaves only partners across a joint to align on.
-    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8, 9, 10, 11, 12 and 12b (the
+    ``repair_swaps`` then runs steps 4, 4b, 4c, 5, 6, 7, 7b, 8, 9, 10, 11, 12, 12b and 12c (the
     step modules; ``swap_margin``: the least gain in the rigidity cost for which fragments
     change marker).
     ``continuity_m`` (10 mm; 0 turns it off): the largest miss of the motion-continuity
@@ -174,7 +177,7 @@ def _merge_again(X, n_min, max_distance_m, loose_distance_m, n_markers, samples,
 
 def _repairs(X, res: MarkerSets, n_min, min_frames, swap_margin, max_step,
              merge_again) -> MarkerSets:
-    """Steps 4-12b (the step modules) on the linkage's markers ``res``."""
+    """Steps 4-12c (the step modules) on the linkage's markers ``res``."""
     def merge_and_join(res, joins):
         # a step that moved pieces can leave a marker as two ids: merged within
         # max_distance_m, then (``joins``) joined by motion continuity as in step 7b

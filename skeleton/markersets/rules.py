@@ -178,9 +178,10 @@ MODEL_UNFIT_MOVES = True  # ... a piece neither off nor fitting (median z), a ma
 #                           MODEL_FAR_Z, moves where several fit it clearly (25141: 37, 2.8, 1.2)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then
 #                         step 12 again (``spheres._sphere_check``; figure 12175)
-SPHERE_MOVES = False    # ... and a piece moved onto the one marker never seen with it
-#                         whose sphere it lies on, where they decide alike (figure 34087);
-#                         off: it made held-out 39328 wrong (stop 81)
+SPHERE_MOVES = True     # ... and a piece moved onto the one marker never seen with it
+#                         whose sphere it lies on, where they decide alike (figure 34087;
+#                         off at stop 81: it made held-out 39328 wrong, which
+#                         MOVES_KEEP_MODEL prevents)
 MOVES_KEEP_MODEL = True  # ... no move where step 12's rigid model fits the piece at home
 #                          or finds it off on the new marker (39328: 0.90 and 0.84 at
 #                          home, 89.6 on the new marker)

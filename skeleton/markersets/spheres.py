@@ -222,16 +222,23 @@
    marker's sphere found the piece off and the fragment on: figure 30 (two bodies, where
    the other marker's sphere finds the piece 44-75 x off it, an opposing verdict) and 113
    (three, one at 5.9 x, above ``SPHERE_FIT_Z``).
-   With ``SPHERE_MOVES`` (stop 81; off by default, as it made held-out figure 39328
-   wrong on its first run) a piece so found off its marker's sphere also moves, with
-   nothing coming back, to a marker that shares no frame with it and whose sphere (all its fragments)
-   it lies on within ``SPHERE_FIT_Z``, judged the same way: two or more agreeing
+   With ``SPHERE_MOVES`` (stop 81; off by default there, as it made held-out figure 39328
+   wrong on its first run; on again since stop 82) a piece so found off its marker's
+   sphere also moves, with nothing coming back, to a marker that shares no frame with it
+   and whose sphere (all its fragments) it lies on within ``SPHERE_FIT_Z``, judged the
+   same way: two or more agreeing
    verdicts, none opposing (``SPHERE_MOVES``; that marker may move as one body with the
    piece's, which an exchange's may not), and every other marker free over the piece's
    frames finds it >= ``SPHERE_MISFIT_Z`` off its sphere on some body (without that,
    figure 12669 with ``MODEL_STRONGER`` and ``NOVEL_POSE_ASIDE`` off sent marker 7's
    piece to marker 11, the first of two free markers whose spheres it lay on: marker 7
-   the other, and marker 39, free too, found it off on no body).
+   the other, and marker 39, free too, found it off on no body). Nor is a move made
+   against step 12's rigid model: where the piece fits its own marker's one-body mates or
+   is off the new marker's (``model._fits``, ``model._off``; ``MOVES_KEEP_MODEL``, stop 82).
+   On 39328 the move took marker 8's first piece (3-marker segment) to marker 10 (another
+   3-marker segment), on verdicts from the frames of one 2-marker segment with two
+   lenders (marker 8's sphere 6.7 and 27.7 x its rms off, marker 10's 2.3 x on); its two
+   mates fit it at home at 0.90 and 0.84 x their sd, marker 10's find it 89.6 x off.
    Verdicts are counted once per body and marker, and a two-track body's frames with
    different lenders (``_pair_frames(every_lender=True)``) as one body (``LENDERS_ONCE``,
    stop 81): held-out figure 37858 (first run at stop 81) had the first pieces of markers
@@ -609,8 +616,9 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
     with it (b may move as one body with a) whose sphere f lies on within
     ``SPHERE_FIT_Z``, judged alike with no piece coming back, where every other marker
     sharing no frame with f has some body finding f >= ``SPHERE_MISFIT_Z`` off its
-    sphere (figure 34087). Agreement is counted per body and marker, a two-track body's
-    frames with different lenders as one body (``LENDERS_ONCE``, figure 37858)."""
+    sphere (figure 34087), and step 12's rigid model neither fits f on a nor finds it off
+    on b (``MOVES_KEEP_MODEL``, figure 39328). Agreement is counted per body and marker, a
+    two-track body's frames with different lenders as one body (``LENDERS_ONCE``, figure 37858)."""
     vis = ~np.isnan(X[..., 0])
     P = _tracks(X, groups)
     S, s0 = _pair_sd(P, min_frames)

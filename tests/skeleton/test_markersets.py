@@ -2217,9 +2217,9 @@ def test_a_piece_off_its_markers_sphere_moves_to_the_marker_whose_sphere_it_lies
     (r 158.0 mm, rms 1.29 x s0) 1.41 x on; in a two-track body's frame marker 18's sphere
     (rms 1.50 x s0) has them 1.11 x on. Step 8's common-centre fit took them in (2.79
     residual sds off as merged, 1.43 exchanged: under its 2:1). Step 12b moves them
-    (``SPHERE_MOVES``; off by default since it made held-out 39328 wrong, so set here)."""
-    fig, _, ids = _right_then_off(monkeypatch, 34087, "SPHERE_MOVES", False,
-                                  SPHERE_MOVES=True)
+    (``SPHERE_MOVES``; off by default at stop 81, when it made held-out 39328 wrong; on
+    again since stop 82, with ``MOVES_KEEP_MODEL``)."""
+    fig, _, ids = _right_then_off(monkeypatch, 34087, "SPHERE_MOVES", False)
     assert [18, 19] in ids and [18] in ids and len(ids) == fig.n_markers
     seg = fig.marker_segment
     assert seg[18] == seg[19] and (seg == seg[18]).sum() == 2
