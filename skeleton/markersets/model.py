@@ -310,6 +310,13 @@ def _fits(js, half=False) -> bool:
     return float(np.median(zs)) <= rules.MODEL_FIT_Z
 
 
+def _against_model(model, f, home, new) -> bool:
+    """Moving fragment ``f`` from marker ``home`` to marker ``new`` goes against the rigid
+    model: the mates at home fit it, or the new marker's find it off (the moves of steps
+    12b and 12c: ``MOVES_KEEP_MODEL``, ``NEIGHBOUR_CONTINUITY``)."""
+    return _fits(model.judge(f, home)) or _off(model.judge(f, new))
+
+
 def _median_z(js) -> float:
     """The median z of the judging mates (0 where none judges)."""
     return float(np.median([z for z, _ in js])) if js else 0.0

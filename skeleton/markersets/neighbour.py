@@ -37,17 +37,17 @@ import numpy as np
 from . import rules
 from .bodies import _one_body_frames, _points_in, _sphere_fit
 from .continuity import _continuity_cost
-from .model import _Model, _fits, _off
+from .model import _against_model, _Model
 from .spheres import _judging_frames
 from .tracks import _paced, _pair_sd, _spans, _tracks
 
 
 def _candidates(X, groups, min_frames=10, body_sd=1.5, body_frames=100, fit_rms=None):
-    """Each move step 12c weighs: (a, f, b, world fall, [(body, fall in its frame, the
-    larger of the two spheres' rms / s0)]), the falls negative where the cost falls
-    (``_neighbour_continuity``); the bodies those across one joint from both markers that
-    see ``f``: their spheres fit within the body's gate (``_judging_frames``' with
-    ``fit_rms``, ``NEIGHBOUR_FIT_RMS`` x s0 by default)."""
+    """Each move step 12c weighs, where some body judges it: (a, f, b, world fall,
+    [(body, fall in its frame, the larger of the two spheres' rms / s0)]), the falls
+    negative where the cost falls (``_neighbour_continuity``); the bodies those across
+    one joint from both markers that see ``f``: their spheres fit within the body's gate
+    (``_judging_frames``' with ``fit_rms``, ``NEIGHBOUR_FIT_RMS`` x s0 by default)."""
     fit_rms = rules.NEIGHBOUR_FIT_RMS if fit_rms is None else fit_rms
     vis = ~np.isnan(X[..., 0])
     P = _tracks(X, groups)
@@ -105,7 +105,8 @@ def _candidates(X, groups, min_frames=10, body_sd=1.5, body_frames=100, fit_rms=
                     if not all(seen[:, h].sum() >= 2 for h in list(groups[a]) + list(gb)):
                         continue
                     judged.append((body, fall(cost, a, b, f), rms))
-                out.append((a, f, b, fall(world, a, b, f), judged))
+                if judged:
+                    out.append((a, f, b, fall(world, a, b, f), judged))
     return out
 
 
@@ -116,7 +117,7 @@ def _neighbour_continuity(X, groups, max_step=np.inf, min_frames=10) -> list | N
     model = None
     found = []
     for a, f, b, w, judged in _candidates(X, groups, min_frames):
-        if not judged or not w < 0:
+        if not w < 0:
             continue
         worst = max(d for _, d, _ in judged)
         if not worst <= -rules.NEIGHBOUR_CONTINUITY_MARGIN:
@@ -125,7 +126,7 @@ def _neighbour_continuity(X, groups, max_step=np.inf, min_frames=10) -> list | N
     for _, a, f, b in sorted(found):
         if model is None:
             model = _Model(X, vis, groups)
-        if _fits(model.judge(f, b)) or _off(model.judge(f, a)):
+        if _against_model(model, f, b, a):
             continue
         new_a = list(groups[a]) + [f]
         new_b = [h for h in groups[b] if h != f]

@@ -270,7 +270,7 @@ from .bodies import (
 )
 from .continuity import _continuity_cost
 from .judges import _jumps
-from .model import _Model, _fits, _off
+from .model import _against_model, _Model
 from .tracks import (
     _cross_alternatives, _exchange, _fragment_sd, _paced, _pair_sd, _rigid_to_all, _spans,
     _tracks
@@ -735,7 +735,7 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
             # nor against step 12's rigid model: it fits f at home or finds it off on b
             if model is None:
                 model = _Model(X, vis, groups)
-            if _fits(model.judge(f, a)) or _off(model.judge(f, b)):
+            if _against_model(model, f, a, b):
                 continue
         new_a = [x for x in groups[a] if x != f] + ([] if h is None else [h])
         new_b = [x for x in groups[b] if x != h] + [f]
