@@ -313,8 +313,15 @@ def _fits(js, half=False) -> bool:
 def _against_model(model, f, home, new) -> bool:
     """Moving fragment ``f`` from marker ``home`` to marker ``new`` goes against the rigid
     model: the mates at home fit it, or the new marker's find it off (the moves of steps
-    12b and 12c: ``MOVES_KEEP_MODEL``, ``NEIGHBOUR_CONTINUITY``)."""
-    return _fits(model.judge(f, home)) or _off(model.judge(f, new))
+    12b and 12c: ``MOVES_KEEP_MODEL``, ``NEIGHBOUR_CONTINUITY``). A fit at home that the
+    new marker's mates share tells the two apart no more than the move's own evidence
+    does (``VETO_NEEDS_CONTRAST``)."""
+    js_new = model.judge(f, new)
+    if _off(js_new):
+        return True
+    if not _fits(model.judge(f, home)):
+        return False
+    return not (rules.VETO_NEEDS_CONTRAST and _fits(js_new))
 
 
 def _median_z(js) -> float:

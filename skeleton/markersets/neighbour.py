@@ -119,8 +119,11 @@ def _neighbour_continuity(X, groups, max_step=np.inf, min_frames=10) -> list | N
     for a, f, b, w, judged in _candidates(X, groups, min_frames):
         if not w < 0:
             continue
-        worst = max(d for _, d, _ in judged)
-        if not worst <= -rules.NEIGHBOUR_CONTINUITY_MARGIN:
+        falls = [d for _, d, _ in judged]
+        if rules.NEIGHBOUR_BEST_MARGIN:
+            if not (max(falls) < 0 and min(falls) <= -rules.NEIGHBOUR_CONTINUITY_MARGIN):
+                continue
+        elif not max(falls) <= -rules.NEIGHBOUR_CONTINUITY_MARGIN:
             continue
         found.append((min(d for _, d, _ in judged), a, f, b))
     for _, a, f, b in sorted(found):

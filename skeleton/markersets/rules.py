@@ -185,10 +185,15 @@ SPHERE_MOVES = True     # ... and a piece moved onto the one marker never seen w
 MOVES_KEEP_MODEL = True  # ... no move where step 12's rigid model fits the piece at home
 #                          or finds it off on the new marker (39328: 0.90 and 0.84 at
 #                          home, 89.6 on the new marker)
+VETO_NEEDS_CONTRAST = True  # ... a fit at home vetoes only where the new marker's mates do
+#                             not fit the piece too (41236: one mate, equally far from both
+#                             markers, 1.01 at home and 0.77 on the new marker)
 LENDERS_ONCE = True     # ... a two-track body's frames with different lenders agree
 #                         once, not once per lender (figure 37858)
 NEIGHBOUR_CONTINUITY = True  # step 12c: a piece moves to its one-body partner never seen
 #                              with it where motion continuity in the frame of a body across
 #                              one joint decides (``neighbour``; 26684, 39284, 39416)
 NEIGHBOUR_CONTINUITY_MARGIN = 1.0  # ... the cost falling by at least this in every such body
+NEIGHBOUR_BEST_MARGIN = True  # ... by the margin in the best body, and at all in every other
+#                               (a larger body seen in part, figure 41236)
 NEIGHBOUR_FIT_RMS = 2.0  # ... a body across one joint: both markers' spheres within this x s0
