@@ -171,6 +171,8 @@ MODEL_UNJUDGED_BACK = True  # ... an off piece's exchange takes back a piece no 
 #                             where it is, fitting its new marker, continuity not rising (26494)
 MODEL_OFF_OPEN = True  # ... an off piece no marker fits moves to the one free marker where no
 #                        mate judges it, continuity not rising (26901)
+OPEN_MOVE_NO_RISE = True  # ... of several such markers, the one where continuity does not
+#                           rise (41134: -1.39 on its own marker, +0.46 on its partner)
 MODEL_RANGE_MOVES = True  # ... a piece no mate judges moves to the one free marker whose
 #                           distance ranges it keeps where its own rule it out (step 7b's
 #                           RANGE_ values), continuity not rising (26623)
