@@ -2264,6 +2264,38 @@ def test_an_end_piece_moves_by_continuity_in_a_neighbours_frame(monkeypatch, k, 
     assert not (np.asarray(fig.parents) == seg[on]).any()          # a leaf
 
 
+
+@pytest.mark.parametrize("flag", ["NEIGHBOUR_BEST_MARGIN", "VETO_NEEDS_CONTRAST"])
+def test_an_end_piece_moves_where_a_body_seen_in_part_agrees_and_one_mate_cannot_tell(
+        monkeypatch, flag):
+    """Held-out figure 41236 (first run at stop 82): the linkage put marker 41's last 20
+    frames (4-marker leaf segment 14; markers 41 and 43 hidden, 40 and 42 seen) on its
+    partner 42. Step 12c's cost falls by 2.56 and 2.34 in two neighbouring bodies and by
+    0.52 in a third, larger one seen in part, and by 1.33 in the world: the margin is asked
+    of the best body, a fall of every other (``NEIGHBOUR_BEST_MARGIN``). The one mate seen
+    with the piece, marker 40, is about equally far from 41 and 42 and fits it on both
+    (1.01 and 0.77 x): a fit at home that the new marker shares does not veto the move
+    (``VETO_NEEDS_CONTRAST``)."""
+    fig, _, ids = _right_then_off(monkeypatch, 41236, flag, False)
+    assert [41, 42] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[41] == seg[42] == seg[40] and (seg == seg[41]).sum() == 4
+    assert not (np.asarray(fig.parents) == seg[41]).any()          # a leaf
+
+
+def test_an_off_piece_moves_to_the_free_marker_it_continues(monkeypatch):
+    """Held-out figure 41134 (first run at stop 82): the linkage put marker 34's last 14
+    frames (2-marker leaf segment 11, both markers hidden before them) at the end of marker
+    11 (2-marker segment 3, its parent), whose partner 12 finds them 46.3 x off. No marker
+    fits the piece, and two free markers have no mate to judge it: marker 34 and its
+    partner 33. ``MODEL_OFF_OPEN`` asked for one such marker; of the two, only marker 34
+    does not raise the continuity cost (it falls by 1.39; on 33 it rises by 0.46), and
+    ``OPEN_MOVE_NO_RISE`` moves it there."""
+    fig, _, ids = _right_then_off(monkeypatch, 41134, "OPEN_MOVE_NO_RISE", False)
+    assert [11, 34] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[33] == seg[34] != seg[11] == seg[12] and fig.parents[seg[34]] == seg[11]
+
 def test_a_two_track_bodys_frames_with_different_lenders_agree_once(monkeypatch):
     """Held-out figure 37858 (first run at stop 81): step 12b exchanged the first pieces of
     markers 18 and 28 (segments 6 and 9; frames 0-46 and 0-53), judged in two frames of
