@@ -1407,10 +1407,13 @@ def test_a_move_needs_a_judge_that_tells_the_markers_apart(monkeypatch):
     allowed for at home (``HOME_DRIFT``) and step 4c leaves the piece where it is; the
     failure is set up with that off too. Since stop 80 ``NOVEL_POSE_ASIDE`` (a judge at a
     pose not seen before is set aside) prevents the failure too; it is set up with that
-    off."""
+    off. Since stop 83 step 12c moves the piece back to marker 8 (the margin asked of the
+    best body, ``NEIGHBOUR_BEST_MARGIN``, and partner 9's fit on both markers no longer a
+    veto, ``VETO_NEEDS_CONTRAST``); it is set up with the first off."""
     _, _, ids = _right_then_off(monkeypatch, 4083, "TELLING_JUDGES", False,
                                 failure_also={**NO_STEP12, "HOME_DRIFT": False,
-                                              "NOVEL_POSE_ASIDE": False})
+                                              "NOVEL_POSE_ASIDE": False,
+                                              "NEIGHBOUR_BEST_MARGIN": False})
     assert [8, 10] in ids
 
 
