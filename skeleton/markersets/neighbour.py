@@ -16,16 +16,20 @@ to marker ``a`` that moves as one body with ``b`` and shares no frame with ``f``
 - in the frame of every neighbouring body (step 12b's bodies, ``_judging_frames``, holding
   neither marker and where both keep a joint sphere without ``f`` within the body's fit
   gate: the body is across one joint from them) that sees ``f`` for ``SPHERE_POINTS``
-  frames, the same cost, computed on the markers' positions in that frame, falls by at
-  least ``NEIGHBOUR_CONTINUITY_MARGIN``; at least one such body judges, none finds less;
-- step 12's rigid model neither fits ``f`` on ``b`` nor finds it off on ``a``; the move is
-  paced (step 3's speed gate).
+  frames, the same cost, computed on the markers' positions in that frame, falls: by at
+  least ``NEIGHBOUR_CONTINUITY_MARGIN`` in the best such body, at all in every other
+  (``NEIGHBOUR_BEST_MARGIN``; stop 82 asked the margin of every body, which left 41236,
+  where a third, larger body seen in part finds a fall of 0.52 beside 2.56 and 2.34);
+- step 12's rigid model does not find ``f`` off on ``a``, nor fit it on ``b`` where a's
+  mates do not fit it too (``model._against_model``, ``VETO_NEEDS_CONTRAST``); the move
+  is paced (step 3's speed gate).
 
 The largest fall moves first, one move a round, at most ``MODEL_ROUNDS`` rounds.
 Figures (all wrong on stop 81's code; a leaf segment whose markers are all hidden near
 the end, one coming back, that end piece on a partner): 26684 (2-marker segment, markers
 10 and 11, the parent two markers, judged in its two-track frame), 39284 (markers 33 and
-34), 39416 (3-marker segment, markers 46 and 47). The margin and the screens are in
+34), 39416 (3-marker segment, markers 46 and 47), 41236 (4-marker segment, markers 41
+and 42; stop 83's two rules above). The margin and the screens are in
 docs/figures-skeleton.md.
 
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
