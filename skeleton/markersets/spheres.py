@@ -732,7 +732,8 @@ def _sphere_check(X, groups, max_step=np.inf, min_frames=10, body_sd=1.5, body_f
                                  if c not in (a, b) and free_of(c, f)):
             continue        # a move: every other marker f could go to is off somewhere
         if h is None and rules.MOVES_KEEP_MODEL:
-            # nor against step 12's rigid model: it fits f at home or finds it off on b
+            # nor against step 12's rigid model: it finds f off on b, or fits it at home
+            # where b's mates do not (``model._against_model``, ``VETO_NEEDS_CONTRAST``)
             if model is None:
                 model = _Model(X, vis, groups)
             if _against_model(model, f, a, b):
