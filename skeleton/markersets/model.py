@@ -166,6 +166,18 @@ first 10 frames (2-marker root segment) were judged 0.98 and 5.66 x by two mates
 3.32: off) and moved to marker 10 of a child segment; the 5.66 mate is across a hinge from
 the fitting one, at 200.3-203.4 mm from it over the piece against 137.1-191.8 mm before.
 
+Since stop 84 a mate beyond ``MODEL_FAR_Z`` does not veto an off piece's destination where
+it finds the piece less far off than the nearest mate at home does (``OFF_FAR_CONTRAST``):
+the piece is off where it is, and a mate that finds it less off elsewhere is no reason to
+keep it there. Held-out figure 42256 (stop 83): marker 4's last 15 frames (3-marker segment
+1) sat at the end of marker 30 (3-marker sibling segment 9), 11.2 x off its one judging
+mate there. On marker 4, free over those frames, its two segment mates find them 1.06 and
+0.70 x; three markers of the child segment 12, one body with marker 4 near their joint,
+find them 7.8, 5.2 and 6.1 x off (each beyond every distance it kept to marker 4 before:
+marker 39 at 92.8 mm against at most 86.8), and the one ``MODEL_NEAR_MATES`` keeps (6.07 x)
+vetoed the fit, two mates within being fewer than ``MODEL_FAR_OUTVOTED``. The veto stands
+where the far mate finds the piece at least as far off as home does.
+
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations
@@ -293,17 +305,19 @@ def _off(js) -> bool:
     return bool(js) and _median_z(js) > rules.MODEL_OFF_Z
 
 
-def _fits(js, half=False) -> bool:
+def _fits(js, half=False, far_below=None) -> bool:
     """Fits a marker: the median z within ``MODEL_FIT_Z``, none beyond ``MODEL_FAR_Z``, and
     ``MODEL_EVIDENCE`` frames seen with the mates in all (a mate beyond is outvoted where
-    ``MODEL_FAR_OUTVOTED`` mates find it within ``MODEL_FIT_Z``). With ``half`` (an off piece's
-    destination, ``MODEL_HALF_FITS``): half the mates within, ``MODEL_STRONG_MATES`` at
-    least, in place of the median."""
+    ``MODEL_FAR_OUTVOTED`` mates find it within ``MODEL_FIT_Z``, or, with ``far_below``, where
+    it finds it below that z: an off piece's z at home, ``OFF_FAR_CONTRAST``). With ``half``
+    (an off piece's destination, ``MODEL_HALF_FITS``): half the mates within,
+    ``MODEL_STRONG_MATES`` at least, in place of the median."""
     if not js or sum(n for _, n in js) < rules.MODEL_EVIDENCE:
         return False
     zs = [z for z, _ in js]
     within = sum(z <= rules.MODEL_FIT_Z for z in zs)
-    if max(zs) > rules.MODEL_FAR_Z and within < rules.MODEL_FAR_OUTVOTED:
+    if (max(zs) > rules.MODEL_FAR_Z and within < rules.MODEL_FAR_OUTVOTED
+            and (far_below is None or max(zs) >= far_below)):
         return False
     if half and rules.MODEL_HALF_FITS:
         return 2 * within >= len(zs) and within >= min(len(zs), rules.MODEL_STRONG_MATES)
@@ -372,7 +386,8 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                             changes.append((0.0, change))
                     continue
                 change = _destination(model, vis, span, groups, f, a, off, max_step, fixed,
-                                      home_z=home[0][0] if weak else 0.0 if unfit else None)
+                                      home_z=home[0][0] if weak else 0.0 if unfit else None,
+                                      off_z=min(z for z, _ in home) if off else None)
                 if change is None and off and rules.MODEL_OFF_OPEN:
                     change = _open_move(model, vis, span, groups, f, a, max_step)
                 if change is not None:
@@ -391,10 +406,12 @@ def _pooled(js) -> float:
     return float(np.sqrt(sum(n * z * z for z, n in fit) / sum(n for _, n in fit)))
 
 
-def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z=None):
+def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z=None,
+                 off_z=None):
     """The new groups after fragment ``f`` of marker ``a`` moves (or is exchanged) to the one
     marker that takes it, or None. ``home_z``: the z of the one mate that judges a piece
-    that is not off (``MODEL_STRONGER``)."""
+    that is not off (``MODEL_STRONGER``); ``off_z``: the least z of the mates that find a
+    piece off at home (``OFF_FAR_CONTRAST``)."""
     X = model.X
     found = []
     for b in range(len(groups)):
@@ -405,7 +422,7 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z
             continue
         js = model.judge(f, b, without=clash, fit=True)
         if off:
-            if not _fits(js, half=True):
+            if not _fits(js, half=True, far_below=off_z if rules.OFF_FAR_CONTRAST else None):
                 continue
         elif len(js) < rules.MODEL_STRONG_MATES or not _fits(js):
             continue

@@ -1032,8 +1032,11 @@ def test_a_cross_exchange_judges_further_off_a_body_by_the_median(monkeypatch):
     and sits 6.13 x s0 off the piece coming home, above the 3.62 x s0 of the farthest
     one-body track it leaves; the other two sit at 0.92 and 1.10 x s0 against 2.54-3.62 x
     s0 at marker 4. By the median sd (``MEDIAN_OFF_BODY``: 1.10 against 3.21) the piece
-    is not further off, and the exchange is made; without it the two stay mixed."""
-    fig, _, ids = _right_then_off(monkeypatch, 13314, "MEDIAN_OFF_BODY", False)
+    is not further off, and the exchange is made; without it the two stay mixed (and
+    without ``OFF_FAR_CONTRAST``: since stop 84 step 12 moves marker 12's piece home, 6.82 x
+    off the nearest mate at home and 6.39 x off the one far mate of three on marker 12)."""
+    fig, _, ids = _right_then_off(monkeypatch, 13314, "MEDIAN_OFF_BODY", False,
+                                  failure_also={"OFF_FAR_CONTRAST": False})
     assert [4, 12] in ids
     assert fig.parents[fig.marker_segment[12]] == fig.marker_segment[4]
 
@@ -2316,6 +2319,24 @@ def test_an_off_piece_moves_to_the_free_marker_it_continues(monkeypatch):
     assert [11, 34] in ids and len(ids) == fig.n_markers
     seg = fig.marker_segment
     assert seg[33] == seg[34] != seg[11] == seg[12] and fig.parents[seg[34]] == seg[11]
+
+
+def test_an_off_piece_moves_where_a_far_mate_finds_it_less_off_than_home(monkeypatch):
+    """Held-out figure 42256 (first run at stop 83): the linkage put marker 4's last 15
+    frames (3-marker segment 1) at the end of marker 30 (3-marker sibling segment 9), whose
+    one judging mate finds them 11.2 x off. On marker 4, free over those frames, its two
+    segment mates fit them (1.06 and 0.70 x); three markers of the child segment 12, one
+    body with marker 4 near their joint, find them 7.8, 5.2 and 6.1 x off (each beyond
+    every distance it kept to marker 4 before), and the one ``MODEL_NEAR_MATES`` keeps
+    (6.07 x) is beyond ``MODEL_FAR_Z`` with two mates within, under ``MODEL_FAR_OUTVOTED``.
+    It finds the piece less off than the mate at home does: it no longer vetoes
+    (``OFF_FAR_CONTRAST``)."""
+    fig, _, ids = _right_then_off(monkeypatch, 42256, "OFF_FAR_CONTRAST", False)
+    assert [4, 30] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[4] != seg[30] and fig.parents[seg[4]] == fig.parents[seg[30]]
+    assert seg[39] == seg[40] == seg[41] and fig.parents[seg[39]] == seg[4]
+
 
 def test_a_two_track_bodys_frames_with_different_lenders_agree_once(monkeypatch):
     """Held-out figure 37858 (first run at stop 81): step 12b exchanged the first pieces of
