@@ -188,7 +188,7 @@ MOVES_KEEP_MODEL = True  # ... no move where step 12's rigid model fits the piec
 #                          or finds it off on the new marker (39328: 0.90 and 0.84 at
 #                          home, 89.6 on the new marker)
 OFF_FAR_CONTRAST = True  # ... an off piece's destination: a mate beyond MODEL_FAR_Z vetoes only
-#                          where it finds it at least as far off as the mates at home do (42256)
+#                          where it finds it as far off as the nearest mate at home (42256)
 VETO_NEEDS_CONTRAST = True  # ... a fit at home vetoes only where the new marker's mates do
 #                             not fit the piece too (41236: one mate, equally far from both
 #                             markers, 1.01 at home and 0.77 on the new marker)

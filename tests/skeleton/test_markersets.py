@@ -1034,7 +1034,7 @@ def test_a_cross_exchange_judges_further_off_a_body_by_the_median(monkeypatch):
     s0 at marker 4. By the median sd (``MEDIAN_OFF_BODY``: 1.10 against 3.21) the piece
     is not further off, and the exchange is made; without it the two stay mixed (and
     without ``OFF_FAR_CONTRAST``: since stop 84 step 12 moves marker 12's piece home, 6.82 x
-    off the nearest mate at home and 6.39 x off the one far mate of three on marker 12)."""
+    off the nearest mate at home and 6.39 x on the one far mate of three on marker 12)."""
     fig, _, ids = _right_then_off(monkeypatch, 13314, "MEDIAN_OFF_BODY", False,
                                   failure_also={"OFF_FAR_CONTRAST": False})
     assert [4, 12] in ids
