@@ -30,7 +30,8 @@ on and what it measured:
 - ``model`` (step 12): a piece off its marker's one-body mates (robust distance
   statistics) moves or is exchanged to the one marker it fits (``_model_check``);
 - ``neighbour`` (step 12c): a piece moves to its one-body partner where motion continuity
-  in the frame of a body across one joint decides (``_neighbour_continuity``);
+  in the frame of a body across one joint decides, or, where nothing else judges the
+  piece, continuity in the world (``_neighbour_continuity``);
 - ``tracks``, ``judges``, ``continuity``, ``bodies``: what the steps share (tracks and
   their distance sds, the jump and misfit judges, run ends and junction misses, body
   frames and joint spheres); ``rules``: every rule's switch and threshold, one place

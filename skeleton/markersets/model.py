@@ -498,16 +498,22 @@ def _range_move(model, vis, span, groups, f, a, max_step):
     they are, 2.74 on marker 15) is within the margin. Two tracks of the child segment find
     them within ``RANGE_FIT_Z`` of marker 15's ranges and beyond ``RANGE_OFF_Z`` outside
     marker 16's (truth: 0 against 7.6 and 8.3 x the sd), none the reverse."""
+    P, i = _with_piece(model, vis, f, a)
+    z_home = _range_z(P, i, a, (a, i))
+    return _one_free_move(model, groups, a, [
+        m for m in _free_moves(model, vis, span, groups, f, a, max_step)
+        if _range_prefers(_range_z(P, i, m[0], (a, m[0], i)), z_home)])
+
+
+def _with_piece(model, vis, f, a):
+    """The model's tracks with marker ``a`` blank over fragment ``f``'s frames and ``f``
+    as a track of its own, and that track's index (the distance ranges' input)."""
     P = model.P.copy()
     P[vis[:, f], a] = np.nan
     y = np.full((len(P), 1, 3), np.nan)
     y[vis[:, f], 0] = model.X[vis[:, f], f]
     P = np.concatenate([P, y], 1)
-    i = P.shape[1] - 1
-    z_home = _range_z(P, i, a, (a, i))
-    return _one_free_move(model, groups, a, [
-        m for m in _free_moves(model, vis, span, groups, f, a, max_step)
-        if _range_prefers(_range_z(P, i, m[0], (a, m[0], i)), z_home)])
+    return P, P.shape[1] - 1
 
 
 def _free_moves(model, vis, span, groups, f, a, max_step):

@@ -24,7 +24,16 @@ to marker ``a`` that moves as one body with ``b`` and shares no frame with ``f``
   mates do not fit it too (``model._against_model``, ``VETO_NEEDS_CONTRAST``); the move
   is paced (step 3's speed gate).
 
-The largest fall moves first, one move a round, at most ``MODEL_ROUNDS`` rounds.
+Where no body judges a move (``NEIGHBOUR_UNJUDGED``), nor a mate of either marker seen
+with ``f`` (step 12's rigid model), nor a track whose distance range holds ``f`` for one
+marker and not the other (``tracks._range_votes``, either way), the world is the only
+witness left: the move is made where the world's cost falls by at least
+``NEIGHBOUR_WORLD_MARGIN`` (0.5), paced. 28220 (stop 77): marker 35's last 24 frames on its
+partner 34, a 2-marker leaf whose parent, grandparent and sibling have two markers each;
+the cost falls by 0.67.
+
+The largest fall in a body moves first, then the largest world fall of the moves no body
+judges; one move a round, at most ``MODEL_ROUNDS`` rounds.
 Figures (all wrong on stop 81's code; a leaf segment whose markers are all hidden near
 the end, one coming back, that end piece on a partner): 26684 (2-marker segment, markers
 10 and 11, the parent two markers, judged in its two-track frame), 39284 (markers 33 and
@@ -41,13 +50,15 @@ import numpy as np
 from . import rules
 from .bodies import _one_body_frames, _points_in, _sphere_fit
 from .continuity import _continuity_cost
-from .model import _against_model, _Model
+from .model import _against_model, _Model, _with_piece
 from .spheres import _judging_frames
-from .tracks import _paced, _pair_sd, _spans, _tracks
+from .tracks import _paced, _pair_sd, _range_votes, _range_z, _spans, _tracks
 
 
-def _candidates(X, groups, min_frames=10, body_sd=1.5, body_frames=100, fit_rms=None):
-    """Each move step 12c weighs, where some body judges it: (a, f, b, world fall,
+def _candidates(X, groups, min_frames=10, body_sd=1.5, body_frames=100, fit_rms=None,
+                unjudged=False):
+    """Each move step 12c weighs, where some body judges it (with ``unjudged`` also where
+    none does, the list of bodies empty): (a, f, b, world fall,
     [(body, fall in its frame, the larger of the two spheres' rms / s0)]), the falls
     negative where the cost falls (``_neighbour_continuity``); the bodies those across
     one joint from both markers that see ``f``: their spheres fit within the body's gate
@@ -109,7 +120,7 @@ def _candidates(X, groups, min_frames=10, body_sd=1.5, body_frames=100, fit_rms=
                     if not all(seen[:, h].sum() >= 2 for h in list(groups[a]) + list(gb)):
                         continue
                     judged.append((body, fall(cost, a, b, f), rms))
-                if judged:
+                if judged or unjudged:
                     out.append((a, f, b, fall(world, a, b, f), judged))
     return out
 
@@ -119,9 +130,14 @@ def _neighbour_continuity(X, groups, max_step=np.inf, min_frames=10) -> list | N
     vis = ~np.isnan(X[..., 0])
     span = _spans(vis, groups)
     model = None
-    found = []
-    for a, f, b, w, judged in _candidates(X, groups, min_frames):
+    found, alone = [], []
+    for a, f, b, w, judged in _candidates(X, groups, min_frames,
+                                          unjudged=rules.NEIGHBOUR_UNJUDGED):
         if not w < 0:
+            continue
+        if not judged:
+            if w <= -rules.NEIGHBOUR_WORLD_MARGIN:
+                alone.append((w, a, f, b))
             continue
         falls = [d for _, d, _ in judged]
         if rules.NEIGHBOUR_BEST_MARGIN:
@@ -130,10 +146,13 @@ def _neighbour_continuity(X, groups, max_step=np.inf, min_frames=10) -> list | N
         elif not max(falls) <= -rules.NEIGHBOUR_CONTINUITY_MARGIN:
             continue
         found.append((min(d for _, d, _ in judged), a, f, b))
-    for _, a, f, b in sorted(found):
+    for by_body, (_, a, f, b) in [(True, m) for m in sorted(found)] + \
+            [(False, m) for m in sorted(alone)]:
         if model is None:
             model = _Model(X, vis, groups)
-        if _against_model(model, f, b, a):
+        if by_body and _against_model(model, f, b, a):
+            continue
+        if not by_body and not _unjudged(model, vis, f, b, a):
             continue
         new_a = list(groups[a]) + [f]
         new_b = [h for h in groups[b] if h != f]
@@ -143,3 +162,16 @@ def _neighbour_continuity(X, groups, max_step=np.inf, min_frames=10) -> list | N
         out[a], out[b] = new_a, new_b
         return out
     return None
+
+
+def _unjudged(model, vis, f, home, new) -> bool:
+    """Nothing but the world's continuity tells marker ``home``'s piece ``f`` from marker
+    ``new`` (``NEIGHBOUR_UNJUDGED``): no mate of either marker is seen with it (step 12's
+    rigid model) and no track finds it in one marker's distance range and outside the
+    other's (``_range_votes``, either way)."""
+    if model.judge(f, home) or model.judge(f, new):
+        return False
+    P, i = _with_piece(model, vis, f, home)
+    z_home = _range_z(P, i, home, (home, i))
+    z_new = _range_z(P, i, new, (home, new, i))
+    return _range_votes(z_new, z_home) == (0, 0)

@@ -201,3 +201,6 @@ NEIGHBOUR_CONTINUITY_MARGIN = 1.0  # ... the cost falling by at least this in ev
 NEIGHBOUR_BEST_MARGIN = True  # ... by the margin in the best body, and at all in every other
 #                               (a larger body seen in part, figure 41236)
 NEIGHBOUR_FIT_RMS = 2.0  # ... a body across one joint: both markers' spheres within this x s0
+NEIGHBOUR_UNJUDGED = True  # ... and where no body judges it, nor a mate of either marker,
+#                            nor the distance ranges, the world's cost falling by at least
+NEIGHBOUR_WORLD_MARGIN = 0.5  # ... this (28220: 0.67)

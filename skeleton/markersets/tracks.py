@@ -217,8 +217,14 @@ def _range_prefers(zb, zc) -> bool:
     last 15 frames against its partner 8, 15 tracks for 9 and 1 for 8). One track with
     none against decides (held-out figure 29501, stop 77: marker 13's last 10 frames,
     against its partner 12, 0.98 x in 13's range and 6.72 x outside 12's)."""
+    n_b, n_c = _range_votes(zb, zc)
+    return n_b >= rules.RANGE_VOTES and n_b >= rules.RANGE_RATIO * n_c
+
+
+def _range_votes(zb, zc) -> tuple[int, int]:
+    """(tracks finding the piece in b's range and off c's, tracks finding the reverse):
+    within ``RANGE_FIT_Z`` of one marker's range and ``RANGE_OFF_Z`` outside the other's."""
     with np.errstate(invalid="ignore"):
         fit_b, off_b = zb <= rules.RANGE_FIT_Z, zb >= rules.RANGE_OFF_Z
         fit_c, off_c = zc <= rules.RANGE_FIT_Z, zc >= rules.RANGE_OFF_Z
-    n_b, n_c = int((fit_b & off_c).sum()), int((fit_c & off_b).sum())
-    return n_b >= rules.RANGE_VOTES and n_b >= rules.RANGE_RATIO * n_c
+    return int((fit_b & off_c).sum()), int((fit_c & off_b).sum())

@@ -2307,6 +2307,31 @@ def test_an_end_piece_moves_where_a_body_seen_in_part_agrees_and_one_mate_cannot
     assert not (np.asarray(fig.parents) == seg[41]).any()          # a leaf
 
 
+def test_an_end_piece_nothing_else_judges_moves_by_world_continuity(monkeypatch):
+    """Held-out figure 28220 (first run at stop 77): the linkage put marker 35's last 24
+    frames (frames 376-399; 2-marker leaf segment 12, marker 34 hidden from frame 344 and
+    35 from 351) at the end of its partner 34. The parent, grandparent and sibling segments
+    have two markers each: no body across one joint judges the move (step 12c), no mate is
+    seen with the piece on either marker (step 12) and no track finds it inside one
+    marker's distance range and outside the other's. The world's continuity cost falls by
+    0.67 with the piece on marker 35, over ``NEIGHBOUR_WORLD_MARGIN``: step 12c moves it
+    (``NEIGHBOUR_UNJUDGED``)."""
+    from skeleton.markersets.neighbour import _candidates
+    fig, off, ids = _right_then_off(monkeypatch, 28220, "NEIGHBOUR_UNJUDGED", False)
+    assert [34, 35] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[34] == seg[35] and (seg == seg[34]).sum() == 2
+    assert not (np.asarray(fig.parents) == seg[34]).any()          # a leaf
+    parent = fig.parents[seg[34]]
+    assert (seg == parent).sum() == (seg == fig.parents[parent]).sum() == 2
+    # the failure: one move, weighed by no body, and the world's cost falls by it
+    _, _, X, owner = _bench_figure(28220)
+    moves = [(w, bodies) for a, f, b, w, bodies in _candidates(X, off.groups, unjudged=True)
+             if owner[f] == 35 and {int(owner[h]) for h in off.groups[a]} == {35}]
+    assert len(moves) == 1 and moves[0][1] == []
+    assert -1.0 < moves[0][0] <= -0.6
+
+
 def test_an_off_piece_moves_to_the_free_marker_it_continues(monkeypatch):
     """Held-out figure 41134 (first run at stop 82): the linkage put marker 34's last 14
     frames (2-marker leaf segment 11, both markers hidden before them) at the end of marker
