@@ -1983,8 +1983,10 @@ def test_pair_frames_judge_within_their_own_fit_gate(monkeypatch):
     merged and 1.03 moved (gain 1269.5), but the better fit is 2.13 x s0, past the 2.0 that
     steps 8, 11 and 12b share for two-track frames; the next frame fits at 10.2 x s0. Step 8's
     two-track bodies judge within ``PAIR_FIT_RMS`` (2.5); at 2.0 the piece stays on marker
-    34."""
-    fig, _, ids = _right_then_off(monkeypatch, 17442, "PAIR_FIT_RMS", 2.0)
+    34. Since stop 85 step 12c puts it on marker 35 as well: no body, mate or distance range
+    judges it, and the world's continuity cost falls by 1.25 (``NEIGHBOUR_UNJUDGED``)."""
+    fig, _, ids = _right_then_off(monkeypatch, 17442, "PAIR_FIT_RMS", 2.0,
+                                  failure_also={"NEIGHBOUR_UNJUDGED": False})
     assert [34, 35] in ids and [35] in ids
     assert fig.marker_segment[34] == fig.marker_segment[35]
 
