@@ -190,7 +190,7 @@ from scipy.ndimage import distance_transform_edt
 from . import rules
 from .continuity import _continuity_cost
 from .judges import _unseen_pose
-from .tracks import _paced, _range_prefers, _range_z, _spans, _tracks
+from .tracks import _paced, _range_prefers, _range_votes, _range_z, _spans, _tracks
 
 
 def _robust(d: np.ndarray, min_frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -382,6 +382,9 @@ def _model_check(X, groups, max_step, fixed=()) -> list:
                 if not (off or weak or unfit):
                     if rules.MODEL_RANGE_MOVES and not home:
                         change = _range_move(model, vis, span, groups, f, a, max_step)
+                        if change is None and rules.UNJUDGED_FIT_MOVES:
+                            change = _unjudged_fit_move(model, vis, span, groups, f, a,
+                                                        max_step)
                         if change is not None:
                             changes.append((0.0, change))
                     continue
@@ -442,6 +445,7 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z
             if off and not all(_off(model.judge(h, b))
                                and _takes(model.judge(h, a, without=(f,), fit=True))
                                or _unjudged_back(model, groups, f, a, b, h, new_a, new_b)
+                               or _unfit_back(model, f, a, b, h, clash)
                                for h in clash):
                 if rules.MODEL_ROTATIONS and len(clash) == 1:
                     found += _rotations(model, vis, span, groups, f, a, b, clash[0],
@@ -503,6 +507,48 @@ def _range_move(model, vis, span, groups, f, a, max_step):
     return _one_free_move(model, groups, a, [
         m for m in _free_moves(model, vis, span, groups, f, a, max_step)
         if _range_prefers(_range_z(P, i, m[0], (a, m[0], i)), z_home)])
+
+
+def _unjudged_fit_move(model, vis, span, groups, f, a, max_step):
+    """``UNJUDGED_FIT_MOVES``: the new groups after a piece ``f`` that no mate of its marker
+    ``a`` judges moves to the one marker free over its frames (and paced) where its mates
+    fit it (``_fits``), where no track keeps the piece inside a's distance range and
+    outside that marker's (``_range_votes``) and the move raises the two markers'
+    continuity cost by less than ``CONTINUITY_MARGIN`` (as ``MODEL_CONTINUITY`` lets a
+    piece that is not off move); or None. Held-out figure 45450 (stop 85): marker 18's
+    last 13 frames (387-399; 2-marker segment 6) sat at the end of marker 9 (2-marker
+    parent segment 3), whose partner is hidden from frame 386; on marker 18, free over
+    those frames, its partner 19 finds them 1.00 x over 13 frames, no range votes either
+    way, and the move raises the continuity cost by 0.17."""
+    found = [m for m in _free_moves(model, vis, span, groups, f, a, max_step)
+             if _fits(model.judge(f, m[0], fit=True))]
+    if len(found) != 1:
+        return None
+    b, new_a, new_b = found[0]
+    P, i = _with_piece(model, vis, f, a)
+    z_home = _range_z(P, i, a, (a, i))
+    if _range_votes(_range_z(P, i, b, (a, b, i)), z_home)[1]:
+        return None
+    if _rise(model, groups, a, b, new_a, new_b) >= rules.CONTINUITY_MARGIN:
+        return None
+    out = [list(g) for g in groups]
+    out[a], out[b] = new_a, new_b
+    return [g for g in out if g]
+
+
+def _unfit_back(model, f, a, b, h, clash) -> bool:
+    """``OFF_EXCHANGE_UNFIT_BACK``: piece ``h`` of marker ``b``, over the frames of the off
+    piece ``f`` of marker ``a``, goes back to ``a`` in an exchange where it does not fit
+    ``b`` (without the other pieces coming back) and fits ``a`` without f (as
+    ``MODEL_STRONGER_EXCHANGES`` takes a piece back). Held-out figure 45688 (stop 85): the
+    first pieces of markers 30 (frames 0-11; 2-marker hinge segment 10) and 32 (frames
+    0-22; 3-marker segment 11) were exchanged from the linkage on; marker 32's piece is
+    15.66 x off marker 30's one mate and fits marker 32's (0.84 x), and marker 30's piece
+    is 2.26 x on marker 32's one mate (not off) and 1.04 x on marker 30's."""
+    if not rules.OFF_EXCHANGE_UNFIT_BACK:
+        return False
+    return (not _fits(model.judge(h, b, without=[x for x in clash if x != h], fit=True))
+            and _fits(model.judge(h, a, without=(f,), fit=True)))
 
 
 def _with_piece(model, vis, f, a):

@@ -178,6 +178,11 @@ MODEL_RANGE_MOVES = True  # ... a piece no mate judges moves to the one free mar
 #                           RANGE_ values), continuity not rising (26623)
 MODEL_UNFIT_MOVES = True  # ... a piece neither off nor fitting (median z), a mate beyond
 #                           MODEL_FAR_Z, moves where several fit it clearly (25141: 37, 2.8, 1.2)
+UNJUDGED_FIT_MOVES = True  # ... a piece no mate judges moves to the one free marker where its
+#                           mates fit it, no track's range rules that marker out, continuity
+#                           rising by less than CONTINUITY_MARGIN (45450: 1.00 x, rise 0.17)
+OFF_EXCHANGE_UNFIT_BACK = True  # ... an off piece's exchange takes back a piece that does not
+#                           fit where it is and fits the off piece's marker (45688: 2.26, 1.04)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then
 #                         step 12 again (``spheres._sphere_check``; figure 12175)
 SPHERE_MOVES = True     # ... and a piece moved onto the one marker never seen with it

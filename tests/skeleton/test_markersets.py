@@ -2365,6 +2365,65 @@ def test_an_off_piece_moves_where_a_far_mate_finds_it_less_off_than_home(monkeyp
     assert seg[39] == seg[40] == seg[41] and fig.parents[seg[39]] == seg[4]
 
 
+def test_a_piece_no_mate_judges_moves_to_the_free_marker_its_mates_fit(monkeypatch):
+    """Held-out figure 45450 (first run at stop 85): the linkage put marker 18's last 13
+    frames (387-399; 2-marker segment 6) at the end of marker 9 (2-marker segment 3, its
+    parent), whose partner 10 is hidden from frame 386: no mate judges the piece there. On
+    marker 18, free over those frames, its partner 19 finds it 1.00 x over 13 frames; no
+    track's distance range tells the two markers apart and the move raises the continuity
+    cost by 0.17, within ``CONTINUITY_MARGIN``: step 12 moves it (``UNJUDGED_FIT_MOVES``)."""
+    from skeleton.markersets import model as mm
+    fig, off, ids = _right_then_off(monkeypatch, 45450, "UNJUDGED_FIT_MOVES", False)
+    assert [9, 18] in ids and [18] in ids and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[18] == seg[19] != seg[9] == seg[10] and fig.parents[seg[18]] == seg[9]
+    assert (seg == seg[18]).sum() == (seg == seg[9]).sum() == 2
+    # the failure: the piece has no judge where it is and one mate that fits it on 18
+    _, _, X, owner = _bench_figure(45450)
+    vis = ~np.isnan(X[..., 0])
+    groups = [list(g) for g in off.groups]
+    a, b = ids.index([9, 18]), ids.index([18])
+    piece = [f for f in groups[a] if owner[f] == 18]
+    assert len(piece) == 1 and np.flatnonzero(vis[:, piece[0]])[[0, -1]].tolist() == [387, 399]
+    model = mm._Model(X, vis, groups)
+    assert model.judge(piece[0], a) == []
+    js = model.judge(piece[0], b, fit=True)
+    assert len(js) == 1 and js[0][0] <= 1.1 and js[0][1] == 13
+    new_a = [h for h in groups[a] if h != piece[0]]
+    assert 0 < mm._rise(model, groups, a, b, new_a, groups[b] + piece) < 0.5
+
+
+def test_an_off_piece_is_exchanged_for_one_that_does_not_fit_where_it_is(monkeypatch):
+    """Held-out figure 45688 (first run at stop 85): the linkage exchanged the first pieces
+    of markers 30 (frames 0-11; 2-marker hinge segment 10) and 32 (frames 0-22; 3-marker
+    segment 11). Marker 32's piece is 15.7 x off marker 30's one mate and fits marker 32's
+    (0.84 x), but step 12 exchanged an off piece only for pieces off where they are, and
+    marker 30's piece is 2.26 x on marker 32's one mate: between ``MODEL_FIT_Z`` and
+    ``MODEL_OFF_Z``. It fits marker 30 (1.04 x): the exchange is made now
+    (``OFF_EXCHANGE_UNFIT_BACK``), as ``MODEL_STRONGER_EXCHANGES`` takes a piece back."""
+    from skeleton.markersets import model as mm, rules
+    fig, off, ids = _right_then_off(monkeypatch, 45688, "OFF_EXCHANGE_UNFIT_BACK", False)
+    assert ids.count([30, 32]) == 2 and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[30] != seg[32] and (seg == seg[30]).sum() == 2 and (seg == seg[32]).sum() == 3
+    _, _, X, owner = _bench_figure(45688)
+    vis = ~np.isnan(X[..., 0])
+    groups = [list(g) for g in off.groups]
+    # the id holding most of each marker's frames, and the other marker's first piece on it
+    home = {m: max(range(len(groups)), key=lambda i: sum(
+        vis[:, f].sum() for f in groups[i] if owner[f] == m)) for m in (30, 32)}
+    first = {m: min((f for f in groups[home[n]] if owner[f] == m),
+                    key=lambda f: np.flatnonzero(vis[:, f])[0]) for m, n in ((30, 32), (32, 30))}
+    model = mm._Model(X, vis, groups)
+    f, h = first[32], first[30]           # 32's piece on 30's id, 30's piece on 32's id
+    z_off = [z for z, _ in model.judge(f, home[30])]
+    assert len(z_off) == 1 and z_off[0] > 10
+    assert mm._fits(model.judge(f, home[32], without=[h], fit=True))
+    z_back = [z for z, _ in model.judge(h, home[32], fit=True)]
+    assert len(z_back) == 1 and rules.MODEL_FIT_Z < z_back[0] < rules.MODEL_OFF_Z
+    assert mm._fits(model.judge(h, home[30], without=(f,), fit=True))
+
+
 def test_a_two_track_bodys_frames_with_different_lenders_agree_once(monkeypatch):
     """Held-out figure 37858 (first run at stop 81): step 12b exchanged the first pieces of
     markers 18 and 28 (segments 6 and 9; frames 0-46 and 0-53), judged in two frames of
