@@ -178,6 +178,27 @@ marker 39 at 92.8 mm against at most 86.8), and the one ``MODEL_NEAR_MATES`` kee
 vetoed the fit, two mates within being fewer than ``MODEL_FAR_OUTVOTED``. The veto stands
 where the far mate finds the piece at least as far off as home does.
 
+Since stop 86:
+
+- A piece that no mate of its marker judges, where the distance ranges do not move it
+  (``MODEL_RANGE_MOVES``), moves to the one marker free over its frames (and paced) where
+  its mates fit it, where no track keeps it inside its own marker's range and outside that
+  marker's, and where the move raises the two markers' continuity cost by less than
+  ``CONTINUITY_MARGIN`` (``UNJUDGED_FIT_MOVES``, ``_unjudged_fit_move``). Held-out figure
+  45450 (stop 85): marker 18's last 13 frames (2-marker segment 6) sat at the end of
+  marker 9 (its 2-marker parent segment's), whose partner is hidden from frame 386; on
+  marker 18, free over them, partner 19 finds them 1.00 x over 13 frames; the cost rises
+  by 0.17.
+- An off piece's exchange also takes back a piece that does not fit where it is (judged
+  without the other pieces coming back) and fits the off piece's marker without it, as
+  ``MODEL_STRONGER_EXCHANGES`` does for a piece that is not off
+  (``OFF_EXCHANGE_UNFIT_BACK``, ``_unfit_back``). Held-out figure 45688 (stop 85): the
+  linkage exchanged the first pieces of markers 30 (2-marker hinge segment 10, frames
+  0-11) and 32 (3-marker segment 11, frames 0-22); marker 32's is 15.7 x off marker 30's
+  one mate and fits marker 32's (0.84 x); marker 30's is 2.26 x on marker 32's one mate,
+  neither off nor fitting, and 1.04 x on marker 30's. The exchange lowers the continuity
+  cost by 1.69.
+
 Conventions: docs/conventions.md [arrays] (NaN gaps), [errors].
 """
 from __future__ import annotations
