@@ -906,10 +906,11 @@ def test_a_voter_moves_onto_a_marker_without_voters_where_the_move_is_clear(monk
     so the right exchange moves a voter onto a marker without one, which step 4b's voter
     exception (figure 313) never judged. It gains 14.33, the margin more than any other
     split of the two markers' fragments, and is now made (``CLEAR_VOTER_MOVES``). Since
-    stop 76 step 12's ``MODEL_UNJUDGED_BACK`` makes the exchange too; the failure is shown
-    with it off as well."""
+    stop 76 step 12's ``MODEL_UNJUDGED_BACK`` makes the exchange too, and since stop 86
+    its ``OFF_EXCHANGE_UNFIT_BACK``; the failure is shown with both off as well."""
     fig, _, ids = _right_then_off(monkeypatch, 10199, "CLEAR_VOTER_MOVES", False,
-                                  failure_also={"MODEL_UNJUDGED_BACK": False})
+                                  failure_also={"MODEL_UNJUDGED_BACK": False,
+                                                "OFF_EXCHANGE_UNFIT_BACK": False})
     assert [39, 48] in ids
     assert fig.marker_segment[39] != fig.marker_segment[48]
 
@@ -1005,8 +1006,10 @@ def test_a_split_join_allows_for_a_judge_drifting_across_a_joint(monkeypatch):
     the joint between barely moves), found the 12-frame piece 13.8 x the bound off, while
     marker 10's segment partner fitted it at 0.08. With that judge's drift allowed for
     (``DRIFT_JUDGES``, ``_drift_allowance``: 0.16 x the bound) the join is made; without
-    it the two pieces stay one id."""
-    fig, off, ids = _right_then_off(monkeypatch, 12460, "DRIFT_JUDGES", False)
+    it the two pieces stay one id. (Since stop 86 step 12's ``UNJUDGED_FIT_MOVES`` also
+    puts it right; the failure is shown with that rule off as well.)"""
+    fig, off, ids = _right_then_off(monkeypatch, 12460, "DRIFT_JUDGES", False,
+                                    failure_also={"UNJUDGED_FIT_MOVES": False})
     assert [10, 49] in ids and len(ids) == fig.n_markers + 1
 
 
@@ -1240,9 +1243,11 @@ def test_defer_gap_is_checked():
         merge_fragments(X, defer_gap=0)
 
 
-@pytest.mark.parametrize("k, piece_of, held_by", [(403, 19, 8), (3019, 1, 40)])
+@pytest.mark.parametrize("k, piece_of, held_by, later", [
+    (403, 19, 8, "OFF_EXCHANGE_UNFIT_BACK"), (3019, 1, 40, "UNJUDGED_FIT_MOVES")])
 def test_a_piece_no_judge_sees_moves_to_the_marker_a_partner_places_it_on(monkeypatch, k,
-                                                                        piece_of, held_by):
+                                                                        piece_of, held_by,
+                                                                        later):
     """Figures 403 (failing since it was first run) and 3019 (first run at stop 39): the
     linkage gave a marker's first pieces (403: marker 19's first 47 and 38 frames; 3019:
     marker 1's first 18) to a marker of another segment. No track judges them there: the
@@ -1252,8 +1257,11 @@ def test_a_piece_no_judge_sees_moves_to_the_marker_a_partner_places_it_on(monkey
     both, see it for >= 20 frames in all (``UNJUDGED_MOVES``); in 3019 a marker of the next
     segment, rigid over those 18 frames, also judges there and sits 3.55 x the bound off,
     so a verdict of every judge would keep the piece out. (Since stop 57 step 4b's
-    ``BODY_CONFIRMS`` also puts 403 right; it is shown with that rule off.)"""
+    ``BODY_CONFIRMS`` also puts 403 right; it is shown with that rule off. Since stop 86
+    step 12 puts both right too, 403 by ``OFF_EXCHANGE_UNFIT_BACK`` and 3019 by
+    ``UNJUDGED_FIT_MOVES``; the failure is shown with that rule off as well.)"""
     _, _, ids = _right_then_off(monkeypatch, k, "UNJUDGED_MOVES", False,
+                                failure_also={later: False},
                                 ORDER_SD_WEIGHT=OLD_ORDER_SD_WEIGHT, BODY_CONFIRMS=False)
     assert sorted([piece_of, held_by]) in ids
 
@@ -1848,8 +1856,11 @@ def test_step4_jumps_need_a_partner_seeing_two_fragments_of_a_marker(monkeypatch
     to the root (``SPHERE_JOINS_PAIRS``, every lending body: the best-fitting one, a
     sibling, is hidden over those frames), 1.1 x the sphere's rms on marker 50's, 78 and
     131 x off the two other free markers'. Since stop 77 step 7b's ``RANGE_JOINS`` joins it
-    right too (before step 11), so that failure is shown with it off as well."""
-    fig, _, ids = _right_then_off(monkeypatch, 16029, "JUMPS_SEEN_TWICE", False)
+    right too (before step 11), so that failure is shown with it off as well. Since stop 86
+    step 12's ``UNJUDGED_FIT_MOVES`` puts the first failure right, so it is shown with that
+    rule off."""
+    fig, _, ids = _right_then_off(monkeypatch, 16029, "JUMPS_SEEN_TWICE", False,
+                                  failure_also={"UNJUDGED_FIT_MOVES": False})
     assert [0, 50] in ids and [0] in ids
     monkeypatch.undo()
     _, _, ids = _right_then_off(monkeypatch, 16029, "SPHERE_JOINS_PAIRS", False,
@@ -1966,9 +1977,11 @@ def test_pieces_break_the_voters_ties(monkeypatch):
     stays on marker 26, where no later step has a judge that sees it for long enough.
     (Since stop 74 step 4c's ``UNJUDGED_CONTINUES`` moves it too, on that judge's 14
     frames and the piece's motion: taking it off marker 26 lowers that marker's continuity
-    cost by 2.47, and it lowers marker 22's by 0.50; so it is off as well.)"""
+    cost by 2.47, and it lowers marker 22's by 0.50; so it is off as well. Since stop 86
+    step 12's ``UNJUDGED_FIT_MOVES`` moves it too; off as well.)"""
     fig, _, ids = _right_then_off(monkeypatch, 21448, "PIECES_BREAK_TIES", False,
-                                  failure_also={"UNJUDGED_CONTINUES": False})
+                                  failure_also={"UNJUDGED_CONTINUES": False,
+                                                "UNJUDGED_FIT_MOVES": False})
     assert [22, 26] in ids
     seg = fig.marker_segment
     assert seg[22] != seg[26]
@@ -2130,8 +2143,11 @@ def test_an_off_body_piece_most_home_judges_fit_stays(monkeypatch):
     Marker 36's first piece (frames 0-36, 2-marker segment 12), left alone once step 4c
     took marker 35's piece off it, was free over those frames and one judge fitted the
     fragment there. ``HOME_MAJORITY_STAYS`` keeps such a piece home unless as many judges
-    fit it where it would go; without it step 4c's exchange gives it to marker 36."""
-    fig, _, ids = _right_then_off(monkeypatch, 22706, "HOME_MAJORITY_STAYS", False)
+    fit it where it would go; without it step 4c's exchange gives it to marker 36. (Since
+    stop 86 step 12's ``UNJUDGED_FIT_MOVES`` puts that right too; the failure is shown with
+    it off as well.)"""
+    fig, _, ids = _right_then_off(monkeypatch, 22706, "HOME_MAJORITY_STAYS", False,
+                                  failure_also={"UNJUDGED_FIT_MOVES": False})
     assert [3, 36] in ids
     seg = fig.marker_segment
     assert (seg == seg[3]).sum() == 3 and (seg == seg[36]).sum() == 2
