@@ -13,15 +13,15 @@ difference (a stale cache).
 
 ``benchmarks/cache/markersets_step4.jsonl.gz`` (stop 65, steps 1-3 unchanged since e80e2f2)
 holds figures 0-1737, 2146-3573, 3880-5917, 6400-7793, 9160-9185, 9521-28833, 29001-29221,
-29401-33807, 34001-45100 and others named in the tests and the step
-modules' docstrings (41,683; 17565-20318 added at stop 68, first runs of stops 66-68;
+29401-33807, 34001-46725 and others named in the tests and the step
+modules' docstrings (43,308; 17565-20318 added at stop 68, first runs of stops 66-68;
 20319-21576 at stop 69,
 21577-22280 at stop 70, 22281-22748 at stop 71, 22749-23257 at stop 72, 23258-24454 at stop 73,
 24455-25353 at stop 74, 25354-26507 at stop 75, 26508-27727 at stop 76, 27728-28833 and
 29001-29221 at stop 77, 29401-33000 at stop 78 (29401-30606: stop 77's last first runs),
 33001-33807, 34001-34757 and 34761-35000 at stop 79, 34758-34760, 35001-37691 and
 38001-38284 at stop 80, 37692-38000 and 38285-39428 at stop 81, 39429-41000 at stop 82,
-41001-42470 at stop 83, 42471-43600 at stop 84, 43601-45100 at stop 85; their first runs).
+41001-42470 at stop 83, 42471-43600 at stop 84, 43601-45100 at stop 85, 45101-46725 at stop 86; their first runs).
 
 Usage: python benchmarks/screen_markersets.py FIGURES OUT [--cache FILE] [--check]
        [--set NAME=VALUE ...] [--compare NAME=VALUE ...]
