@@ -454,8 +454,7 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z
             # mates that find it less clearly than its one mate at home do not outvote it
             continue
         elif clash and not (rules.MODEL_STRONGER_EXCHANGES and all(
-                not _fits(model.judge(h, b, without=[x for x in clash if x != h], fit=True))
-                and _fits(model.judge(h, a, without=(f,), fit=True)) for h in clash)):
+                _unfit_back(model, f, a, b, h, clash) for h in clash)):
             # a piece fitting one mate: an exchange only where each piece coming back
             # does not fit b (without the others) and fits a
             continue
@@ -466,7 +465,8 @@ def _destination(model, vis, span, groups, f, a, off, max_step, fixed=(), home_z
             if off and not all(_off(model.judge(h, b))
                                and _takes(model.judge(h, a, without=(f,), fit=True))
                                or _unjudged_back(model, groups, f, a, b, h, new_a, new_b)
-                               or _unfit_back(model, f, a, b, h, clash)
+                               or (rules.OFF_EXCHANGE_UNFIT_BACK
+                                   and _unfit_back(model, f, a, b, h, clash))
                                for h in clash):
                 if rules.MODEL_ROTATIONS and len(clash) == 1:
                     found += _rotations(model, vis, span, groups, f, a, b, clash[0],
@@ -558,16 +558,15 @@ def _unjudged_fit_move(model, vis, span, groups, f, a, max_step):
 
 
 def _unfit_back(model, f, a, b, h, clash) -> bool:
-    """``OFF_EXCHANGE_UNFIT_BACK``: piece ``h`` of marker ``b``, over the frames of the off
-    piece ``f`` of marker ``a``, goes back to ``a`` in an exchange where it does not fit
-    ``b`` (without the other pieces coming back) and fits ``a`` without f (as
-    ``MODEL_STRONGER_EXCHANGES`` takes a piece back). Held-out figure 45688 (stop 85): the
+    """``MODEL_STRONGER_EXCHANGES`` and ``OFF_EXCHANGE_UNFIT_BACK``: piece ``h`` of marker
+    ``b``, over the frames of the (off, for the second) piece ``f`` of marker ``a``, goes
+    back to ``a`` in an exchange where it does not fit ``b`` (without the other pieces
+    coming back) and fits ``a`` without f. For an off piece, held-out figure 45688 (stop
+    85): the
     first pieces of markers 30 (frames 0-11; 2-marker hinge segment 10) and 32 (frames
     0-22; 3-marker segment 11) were exchanged from the linkage on; marker 32's piece is
     15.66 x off marker 30's one mate and fits marker 32's (0.84 x), and marker 30's piece
     is 2.26 x on marker 32's one mate (not off) and 1.04 x on marker 30's."""
-    if not rules.OFF_EXCHANGE_UNFIT_BACK:
-        return False
     return (not _fits(model.judge(h, b, without=[x for x in clash if x != h], fit=True))
             and _fits(model.judge(h, a, without=(f,), fit=True)))
 
