@@ -14,8 +14,7 @@ built with a smaller ``min_marker_spacing_m`` (random_tree takes up to 400 draws
 with 60, figure 59 kept two markers 7.8 mm apart). Merge time: the
 sum over the figures, and its ratio to the merge without the repair (``repair_swaps=False``:
 steps 1-3 of skeleton/markersets/ only), and with to without step 12 (``rules.MODEL_CHECK``
-False), and to stop 85's rules (without stop 86's ``UNJUDGED_FIT_MOVES`` and
-``OFF_EXCHANGE_UNFIT_BACK``).
+False), and to stop 86's rules (without stop 87's ``CONTRAST_EXCHANGES``).
 """
 from __future__ import annotations
 
@@ -33,8 +32,7 @@ from tests.skeleton._figures import fragment, marker_spacing  # noqa: E402
 
 # name: (merge_fragments keywords, skeleton.markersets.rules constants set for it)
 VARIANTS = {"repair": ({}, {}), "no step 12": ({}, {"MODEL_CHECK": False}),
-            "stop 85 rules": ({}, {"UNJUDGED_FIT_MOVES": False,
-                                      "OFF_EXCHANGE_UNFIT_BACK": False}),
+            "stop 86 rules": ({}, {"CONTRAST_EXCHANGES": False}),
             "no repair": ({"repair_swaps": False}, {})}
 
 
@@ -85,8 +83,8 @@ def main(first=0, last=80, T=400):
     print(f"merge time: repair {t['repair']:.1f} s, no repair {t['no repair']:.1f} s, "
           f"ratio {t['repair'] / t['no repair']:.2f}; without step 12 (MODEL_CHECK) "
           f"{t['no step 12']:.1f} s, ratio with it {t['repair'] / t['no step 12']:.2f}; "
-          f"with stop 85's rules (UNJUDGED_FIT_MOVES, OFF_EXCHANGE_UNFIT_BACK off) "
-          f"{t['stop 85 rules']:.1f} s, ratio {t['repair'] / t['stop 85 rules']:.2f}; "
+          f"with stop 86's rules (CONTRAST_EXCHANGES off) "
+          f"{t['stop 86 rules']:.1f} s, ratio {t['repair'] / t['stop 86 rules']:.2f}; "
           f"largest figure "
           f"({max(r['F'] for r in rows)} fragments) "
           f"{max(rows, key=lambda r: r['F'])['repair']['t']:.2f} s")

@@ -183,6 +183,10 @@ UNJUDGED_FIT_MOVES = True  # ... a piece no mate judges moves to the one free ma
 #                           rising by less than CONTINUITY_MARGIN (45450: 1.00 x, rise 0.17)
 OFF_EXCHANGE_UNFIT_BACK = True  # ... an off piece's exchange takes back a piece that does not
 #                           fit where it is and fits the off piece's marker (45688: 2.26, 1.04)
+CONTRAST_EXCHANGES = True  # ... two overlapping pieces, each fitting at home on the median but
+#                            a mate finding it beyond MODEL_OFF_Z, are exchanged where every
+#                            mate fits each on the other's marker, continuity not rising
+#                            (46734: 6.01 and 5.28 at home, at most 1.36 exchanged, -6.21)
 SPHERE_CHECK = True     # step 12b: two pieces exchanged where joint spheres decide, then
 #                         step 12 again (``spheres._sphere_check``; figure 12175)
 SPHERE_MOVES = True     # ... and a piece moved onto the one marker never seen with it

@@ -2440,6 +2440,42 @@ def test_an_off_piece_is_exchanged_for_one_that_does_not_fit_where_it_is(monkeyp
     assert mm._fits(model.judge(h, home[30], without=(f,), fit=True))
 
 
+def test_two_pieces_one_mate_tells_apart_are_exchanged(monkeypatch):
+    """Held-out figure 46734 (first run at stop 86): step 8's ``PAIR_FRAMES`` exchanged
+    the end pieces of markers 2 (frames 386-399) and 3 (375-399), both of the 4-marker root
+    segment, which sit at nearly the same distances to their mates. Where each piece is,
+    the median of its three judges fits it, but one finds it far off (6.01 and 5.28 x); on
+    the other marker every mate fits it (1.10 and 1.36 x; 1.03 and 1.30 x), and the
+    exchange lowers the continuity cost by 6.21: step 12 exchanges them
+    (``CONTRAST_EXCHANGES``)."""
+    from skeleton.markersets import model as mm, rules
+    fig, off, ids = _right_then_off(monkeypatch, 46734, "CONTRAST_EXCHANGES", False)
+    assert ids.count([2, 3]) == 2 and len(ids) == fig.n_markers
+    seg = fig.marker_segment
+    assert seg[2] == seg[3] == 0 and (seg == 0).sum() == 4
+    _, _, X, owner = _bench_figure(46734)
+    vis = ~np.isnan(X[..., 0])
+    groups = [list(g) for g in off.groups]
+    home = {m: max(range(len(groups)), key=lambda i: sum(
+        vis[:, f].sum() for f in groups[i] if owner[f] == m)) for m in (2, 3)}
+    f = [x for x in groups[home[2]] if owner[x] == 3]   # 3's piece on 2's id
+    h = [x for x in groups[home[3]] if owner[x] == 2]   # 2's piece on 3's id
+    assert len(f) == len(h) == 1
+    f, h = f[0], h[0]
+    assert np.flatnonzero(vis[:, f])[[0, -1]].tolist() == [375, 399]
+    assert np.flatnonzero(vis[:, h])[[0, -1]].tolist() == [386, 399]
+    model = mm._Model(X, vis, groups)
+    for piece, at, other, back in ((f, home[2], home[3], h), (h, home[3], home[2], f)):
+        zs = sorted(z for z, _ in model.judge(piece, at))
+        # not off, the median fitting, one mate far off
+        assert len(zs) == 3 and zs[1] <= rules.MODEL_FIT_Z and zs[2] > 5
+        zo = [z for z, _ in model.judge(piece, other, without=(back,), fit=True)]
+        assert len(zo) == 2 and max(zo) < 1.4
+    new_a = [x for x in groups[home[2]] if x != f] + [h]
+    new_b = [x for x in groups[home[3]] if x != h] + [f]
+    assert mm._rise(model, groups, home[2], home[3], new_a, new_b) < -6
+
+
 def test_a_two_track_bodys_frames_with_different_lenders_agree_once(monkeypatch):
     """Held-out figure 37858 (first run at stop 81): step 12b exchanged the first pieces of
     markers 18 and 28 (segments 6 and 9; frames 0-46 and 0-53), judged in two frames of
