@@ -1435,9 +1435,11 @@ def test_step_8_makes_no_exchange_that_step_4_would_undo(monkeypatch):
     put the jump cost at 7.8 mm^2 before and 2.2e6 mm^2 after (step 4's bound 19.7). Step
     8 now makes no exchange that step 4's jump test would undo (``STEP8_JUMPS``). Since
     stop 75 step 12 repairs that exchange too (``MODEL_UNFIT_MOVES``), so it is set up
-    with that rule off as well."""
+    with that rule off as well, and since stop 87 by ``CONTRAST_EXCHANGES`` (the two
+    pieces exchanged back), off as well."""
     _, _, ids = _right_then_off(monkeypatch, 4455, "STEP8_JUMPS", False,
-                                failure_also={"MODEL_UNFIT_MOVES": False})
+                                failure_also={"MODEL_UNFIT_MOVES": False,
+                                              "CONTRAST_EXCHANGES": False})
     assert [32, 33] in ids
 
 
