@@ -576,11 +576,10 @@ def _unfit_back(model, f, a, b, h, clash) -> bool:
     ``b``, over the frames of the (off, for the second) piece ``f`` of marker ``a``, goes
     back to ``a`` in an exchange where it does not fit ``b`` (without the other pieces
     coming back) and fits ``a`` without f. For an off piece, held-out figure 45688 (stop
-    85): the
-    first pieces of markers 30 (frames 0-11; 2-marker hinge segment 10) and 32 (frames
-    0-22; 3-marker segment 11) were exchanged from the linkage on; marker 32's piece is
-    15.66 x off marker 30's one mate and fits marker 32's (0.84 x), and marker 30's piece
-    is 2.26 x on marker 32's one mate (not off) and 1.04 x on marker 30's."""
+    85): the first pieces of markers 30 (frames 0-11; 2-marker hinge segment 10) and 32
+    (frames 0-22; 3-marker segment 11) were exchanged from the linkage on; marker 32's
+    piece is 15.66 x off marker 30's one mate and fits marker 32's (0.84 x), and marker
+    30's piece is 2.26 x on marker 32's one mate (not off) and 1.04 x on marker 30's."""
     return (not _fits(model.judge(h, b, without=[x for x in clash if x != h], fit=True))
             and _fits(model.judge(h, a, without=(f,), fit=True)))
 
@@ -620,7 +619,7 @@ def _contrast_exchange(model, vis, span, groups, f, a, max_step, fixed=()):
         h = clash[0]
         if _clash(vis, groups, a, h, without=(f,)):
             continue
-        js_h = model.judge(h, b)
+        js_h = model._judged(h, b, ())   # h's own verdict at home, as the round judged it
         if _off(js_h) or not _contrasted(js_h):
             continue
         if not (_all_fit(model.judge(f, b, without=(h,), fit=True))
